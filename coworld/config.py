@@ -1,0 +1,387 @@
+"""Strict, immutable configuration.
+
+One tree of frozen dataclasses holds every default. Named presets (``tiny`` for CPU, ``paper`` for the
+paper's Table 3 on a GPU) are dotted overrides layered on top, and ``--set section.key=value`` overrides
+from the command line are layered on the preset. An unknown key raises :class:`~coworld.errors.ConfigError`;
+a value is cast to the type of its default; nothing mutates a config once built. The resolved config is
+saved as JSON next to every run and inside every dataset.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import types
+import typing
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+from coworld.errors import ConfigError
+
+
+@dataclass(frozen=True)
+class WorldModelConfig:
+    """DreamerV2 world model: encoder, RSSM, decoder, reward and discount heads (paper Sec. 3.2.1)."""
+
+    cnn_depth: int = 48
+    """Channels of the first conv layer; layers double it (48-96-192-384)."""
+    deter: int = 600
+    """Deterministic GRU state size (Table 3: RSSM 600 units)."""
+    hidden: int = 600
+    """Hidden units of the RSSM's input and posterior/prior MLPs."""
+    stoch: int = 32
+    """Number of categorical latent variables (Table 3: 32 x 32 discrete latents)."""
+    classes: int = 32
+    """Classes per categorical latent variable."""
+    mlp_units: int = 400
+    """Units per layer of the reward and discount heads."""
+    mlp_layers: int = 4
+    """Layers of the reward and discount heads."""
+    kl_scale: float = 1.0
+    """beta1 in Eq. 3: weight of KL[posterior || prior]."""
+    kl_balance: float = 0.8
+    """Share of the KL gradient that trains the prior (the rest trains the posterior)."""
+    free_nats: float = 1.0
+    """KL below this many nats (averaged over the batch) gives no gradient."""
+    image_scale: float = 1.0
+    """Weight of the image log-likelihood."""
+    reward_scale: float = 1.0
+    """Weight of the reward log-likelihood."""
+    discount_scale: float = 1.0
+    """Weight of the discount (continuation) log-likelihood."""
+    pred_discount: bool = True
+    """Learn a discount head from terminal flags (else imagination uses the constant discount)."""
+    unimix: float = 0.0
+    """Uniform mixture on the categorical latents (0 = DreamerV2; 0.01 = DreamerV3's)."""
+    lr: float = 2e-4
+    """World-model learning rate (Table 3)."""
+    eps: float = 1e-5
+    """Adam epsilon."""
+    weight_decay: float = 1e-6
+    """AdamW weight decay."""
+    grad_clip: float = 100.0
+    """Global gradient-norm clip."""
+
+
+@dataclass(frozen=True)
+class ActorCriticConfig:
+    """Actor and critic trained in imagination with lambda-returns."""
+
+    units: int = 400
+    """Units per MLP layer of actor and critic."""
+    layers: int = 4
+    """MLP layers of actor and critic."""
+    horizon: int = 15
+    """Imagination horizon H (Table 3)."""
+    discount: float = 0.995
+    """gamma (Table 3)."""
+    lambda_: float = 0.95
+    """lambda of the lambda-return (Table 3)."""
+    actor_lr: float = 4e-5
+    """Actor learning rate (Table 3)."""
+    critic_lr: float = 1e-4
+    """Critic learning rate (Table 3)."""
+    actor_entropy: float = 1e-4
+    """Entropy regularisation weight of the actor."""
+    actor_grad: str = "dynamics"
+    """Actor gradient: 'dynamics' (backprop through the model, DMC default) or 'reinforce'."""
+    actor_min_std: float = 0.1
+    """Lower bound of the actor's standard deviation."""
+    slow_target_every: int = 100
+    """Updates between copies of the critic into its slow target."""
+    slow_target_fraction: float = 1.0
+    """Fraction of the critic mixed into the slow target at each copy."""
+    eps: float = 1e-5
+    """Adam epsilon."""
+    grad_clip: float = 100.0
+    """Global gradient-norm clip."""
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Batches, schedule and bookkeeping of online (and offline) DreamerV2 training."""
+
+    batch_size: int = 50
+    """Sequences per batch (Table 3: 50)."""
+    seq_len: int = 50
+    """Steps per sequence (Table 3: 50)."""
+    prefill: int = 1000
+    """Random-policy environment steps before the first update."""
+    train_every: int = 5
+    """Environment steps per gradient update (the train ratio)."""
+    steps: int = 1_000_000
+    """Environment steps (after action repeat) of an online run."""
+    eval_every: int = 10_000
+    """Environment steps between evaluations."""
+    eval_episodes: int = 5
+    """Episodes per evaluation."""
+    log_every: int = 1000
+    """Environment steps between metric logs."""
+    checkpoint_every: int = 10_000
+    """Environment steps between checkpoints."""
+    envs: int = 1
+    """Parallel training environments (worker processes when > 1)."""
+    expl_noise: float = 0.0
+    """Extra Gaussian noise on training actions."""
+
+
+@dataclass(frozen=True)
+class CoWorldConfig:
+    """CoWorld's schedule (Alg. 1) and its three domain-collaborative terms (Eqs. 3-6)."""
+
+    pretrain_steps: int = 100_000
+    """Online pretraining of the source agent, in source environment steps."""
+    iterations: int = 20
+    """Iterations of {K1 target updates; K2 source updates}."""
+    target_updates: int = 20_000
+    """K1: target-agent updates per iteration (offline, on dataset batches)."""
+    source_updates: int = 20_000
+    """K2: source-agent updates per iteration (with source environment interaction)."""
+    align: bool = True
+    """Eq. 3: align the target encoder to the source encoder on target frames."""
+    beta2: float = 1.5
+    """Weight of the alignment KL (Table 3)."""
+    align_on: str = "latent"
+    """What is aligned: 'latent' (the posterior categorical, paper text) or 'embedding' (release's conv
+    embedding through softmax)."""
+    reward_relabel: bool = True
+    """Eqs. 4-5: train the source reward head on target sequences with relabelled rewards."""
+    k: float = 0.2
+    """Mixing weight of Eq. 5: r = k * r_S_pred + (1 - k) * r_T (Table 3)."""
+    value_reg: bool = True
+    """Eq. 6: max-min value regularisation of the target critic by the source critic."""
+    alpha: float = 0.2
+    """Weight of the value regulariser (Table 3)."""
+    zeta: float = 1.0
+    """Rescales target values against source values in Eq. 6."""
+    eval_every: int = 1
+    """Iterations between evaluations of the target agent in the target environment."""
+
+
+@dataclass(frozen=True)
+class CurlConfig:
+    """CURL (contrastive pixel SAC) and CURL+CQL, trained offline."""
+
+    frame_stack: int = 3
+    """Stacked frames per observation."""
+    crop: int = 64
+    """Side of the random crop fed to the encoder (frames are padded by pad first)."""
+    pad: int = 4
+    """Replicate padding before the random crop."""
+    feature_dim: int = 50
+    """Encoder output size."""
+    num_filters: int = 32
+    """Conv channels per layer."""
+    num_layers: int = 4
+    """Conv layers of the encoder."""
+    hidden: int = 1024
+    """Units of the actor and critic MLPs."""
+    batch_size: int = 512
+    """Transitions per batch."""
+    updates: int = 500_000
+    """Gradient updates of an offline run."""
+    discount: float = 0.99
+    """gamma."""
+    actor_lr: float = 1e-3
+    """Actor learning rate."""
+    critic_lr: float = 1e-3
+    """Critic learning rate."""
+    encoder_lr: float = 1e-3
+    """Contrastive (CURL) learning rate."""
+    alpha_lr: float = 1e-4
+    """Temperature learning rate."""
+    init_temperature: float = 0.1
+    """Initial SAC temperature."""
+    critic_tau: float = 0.01
+    """Polyak rate of the target critic."""
+    encoder_tau: float = 0.05
+    """Polyak rate of the target (key) encoder."""
+    actor_update_every: int = 2
+    """Critic updates per actor update."""
+    target_update_every: int = 2
+    """Critic updates per target update."""
+    cql_weight: float = 1.0
+    """Weight of the CQL(H) penalty (CURL+CQL only)."""
+    cql_samples: int = 10
+    """Random and policy actions per state in the CQL log-sum-exp."""
+    eval_every: int = 10_000
+    """Updates between evaluations."""
+    eval_episodes: int = 5
+    """Episodes per evaluation."""
+    log_every: int = 1000
+    """Updates between metric logs."""
+    checkpoint_every: int = 10_000
+    """Updates between checkpoints."""
+
+
+@dataclass(frozen=True)
+class Config:
+    """Everything a run needs besides its task names and paths."""
+
+    world_model: WorldModelConfig = field(default_factory=WorldModelConfig)
+    actor_critic: ActorCriticConfig = field(default_factory=ActorCriticConfig)
+    train: TrainConfig = field(default_factory=TrainConfig)
+    coworld: CoWorldConfig = field(default_factory=CoWorldConfig)
+    curl: CurlConfig = field(default_factory=CurlConfig)
+    seed: int = 0
+    """Seed of torch, NumPy and the environments."""
+    device: str = "auto"
+    """'auto' (CUDA when available), 'cpu' or 'cuda'."""
+    precision: str = "auto"
+    """'auto' (bf16 autocast on CUDA, fp32 on CPU), 'bf16' or 'fp32'."""
+    compile: bool = False
+    """torch.compile the world model and actor-critic (CUDA only)."""
+
+
+PRESETS: dict[str, dict[str, Any]] = {
+    # The paper's Table 3, for a GPU.
+    "paper": {},
+    # Small enough that a whole collect -> train -> eval runs on 2 CPU cores in minutes.
+    "tiny": {
+        "world_model.cnn_depth": 8,
+        "world_model.deter": 64,
+        "world_model.hidden": 64,
+        "world_model.stoch": 8,
+        "world_model.classes": 8,
+        "world_model.mlp_units": 64,
+        "world_model.mlp_layers": 2,
+        "world_model.lr": 6e-4,
+        "actor_critic.units": 64,
+        "actor_critic.layers": 2,
+        "actor_critic.horizon": 10,
+        "actor_critic.discount": 0.99,
+        "actor_critic.actor_lr": 2e-4,
+        "actor_critic.critic_lr": 3e-4,
+        "actor_critic.slow_target_every": 20,
+        "train.batch_size": 8,
+        "train.seq_len": 16,
+        "train.prefill": 500,
+        "train.train_every": 10,
+        "train.steps": 2000,
+        "train.eval_every": 1000,
+        "train.eval_episodes": 2,
+        "train.log_every": 250,
+        "train.checkpoint_every": 500,
+        "coworld.pretrain_steps": 1000,
+        "coworld.iterations": 2,
+        "coworld.target_updates": 20,
+        "coworld.source_updates": 20,
+        "curl.num_filters": 8,
+        "curl.num_layers": 2,
+        "curl.feature_dim": 16,
+        "curl.hidden": 64,
+        "curl.batch_size": 32,
+        "curl.updates": 200,
+        "curl.eval_every": 100,
+        "curl.eval_episodes": 2,
+        "curl.log_every": 50,
+        "curl.checkpoint_every": 100,
+    },
+}
+
+
+def make_config(preset: str = "paper", overrides: Iterable[str] | Mapping[str, Any] = ()) -> Config:
+    """Build a config from a preset name plus ``key=value`` strings or a ``{dotted.key: value}`` mapping."""
+    if preset not in PRESETS:
+        raise ConfigError(f"unknown preset {preset!r}; choose one of: {', '.join(PRESETS)}")
+    config = apply_overrides(Config(), PRESETS[preset])
+    if isinstance(overrides, Mapping):
+        return apply_overrides(config, overrides)
+    return apply_overrides(config, parse_overrides(overrides))
+
+
+def parse_overrides(items: Iterable[str]) -> dict[str, str]:
+    """Turn ``["a.b=1", "c=x"]`` into ``{"a.b": "1", "c": "x"}``."""
+    parsed = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip():
+            raise ConfigError(f"bad override {item!r}: write it as section.key=value, e.g. train.steps=5000")
+        parsed[key.strip()] = value.strip()
+    return parsed
+
+
+def apply_overrides(config: Any, overrides: Mapping[str, Any]) -> Any:
+    """Return a copy of ``config`` with dotted keys replaced; values are cast to the defaults' types."""
+    for dotted, value in overrides.items():
+        config = _replace(config, dotted.split("."), value, dotted)
+    return config
+
+
+def _replace(node: Any, path: list[str], value: Any, dotted: str) -> Any:
+    fields = {f.name: f for f in dataclasses.fields(node)}
+    name = path[0]
+    if name not in fields:
+        raise ConfigError(f"unknown config key {dotted!r}; valid keys: {', '.join(sorted(config_keys(node)))}")
+    current = getattr(node, name)
+    if dataclasses.is_dataclass(current):
+        if len(path) == 1:
+            raise ConfigError(f"config key {dotted!r} is a section; set one of its keys, e.g. {dotted}.<key>=...")
+        return dataclasses.replace(node, **{name: _replace(current, path[1:], value, dotted)})
+    if len(path) > 1:
+        raise ConfigError(f"unknown config key {dotted!r}: {'.'.join(dotted.split('.')[: -len(path) + 1])} is a value")
+    hint = typing.get_type_hints(type(node))[name]
+    return dataclasses.replace(node, **{name: _cast(value, hint, dotted)})
+
+
+def _cast(value: Any, hint: Any, dotted: str) -> Any:
+    if isinstance(hint, types.UnionType):
+        hint = next(arg for arg in typing.get_args(hint) if arg is not type(None))
+    try:
+        if hint is bool:
+            if isinstance(value, bool):
+                return value
+            text = str(value).lower()
+            if text in ("true", "1", "yes", "on"):
+                return True
+            if text in ("false", "0", "no", "off"):
+                return False
+            raise ValueError(value)
+        if hint is int:
+            if isinstance(value, float) and not value.is_integer():
+                raise ValueError(value)
+            return int(float(value)) if isinstance(value, str) and "e" in value.lower() else int(value)
+        if hint is float:
+            return float(value)
+        if hint is str:
+            return str(value)
+    except (TypeError, ValueError):
+        raise ConfigError(f"config key {dotted!r} takes a {hint.__name__}, got {value!r}") from None
+    raise ConfigError(f"config key {dotted!r} has unsupported type {hint}")
+
+
+def config_keys(node: Any, prefix: str = "") -> list[str]:
+    """Every dotted leaf key of a config tree."""
+    keys = []
+    for f in dataclasses.fields(node):
+        value = getattr(node, f.name)
+        if dataclasses.is_dataclass(value):
+            keys += config_keys(value, f"{prefix}{f.name}.")
+        else:
+            keys.append(prefix + f.name)
+    return keys
+
+
+def to_dict(config: Config) -> dict[str, Any]:
+    """The config as a nested plain dict (what is saved as JSON)."""
+    return dataclasses.asdict(config)
+
+
+def to_json(config: Config) -> str:
+    return json.dumps(to_dict(config), indent=2, sort_keys=True)
+
+
+def from_dict(data: Mapping[str, Any]) -> Config:
+    """Rebuild a config saved with :func:`to_dict`; unknown keys raise ConfigError."""
+    flat: dict[str, Any] = {}
+
+    def walk(node: Mapping[str, Any], prefix: str) -> None:
+        for key, value in node.items():
+            if isinstance(value, Mapping):
+                walk(value, f"{prefix}{key}.")
+            else:
+                flat[prefix + key] = value
+
+    walk(data, "")
+    return apply_overrides(Config(), flat)

@@ -1,0 +1,31 @@
+"""User-facing errors.
+
+Anything a person can fix (a bad task name, a corrupt dataset, an unknown config key, a missing checkpoint)
+raises :class:`CoworldError` with one line saying what is wrong and what to do. The CLI prints that line and
+exits with code 2; library users catch the exception.
+"""
+
+from __future__ import annotations
+
+
+class CoworldError(Exception):
+    """A problem with the user's input, described in one actionable line."""
+
+
+class UnknownTaskError(CoworldError, KeyError):
+    """A task name that is not in the registry."""
+
+    def __str__(self) -> str:  # KeyError would quote the message
+        return str(self.args[0])
+
+
+class ConfigError(CoworldError):
+    """An unknown config key, a value of the wrong type, or an unknown preset."""
+
+
+class DatasetError(CoworldError):
+    """A dataset that is missing, unreadable, of the wrong task or shape, or locked by another writer."""
+
+
+class CheckpointError(CoworldError):
+    """A checkpoint that is missing, corrupt or made by an incompatible run."""

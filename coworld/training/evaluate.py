@@ -1,0 +1,191 @@
+"""One evaluation protocol for every algorithm.
+
+An agent is anything with ``policy(obs, state, mode="eval", is_first=...) -> (action, state)``; agents
+with a critic also offer ``value(state) -> (N,)``, the critic's estimate for the states the policy has just
+seen. Episodes run in ``workers`` environments side by side (worker processes when more than one), each
+seeded differently; the result holds the return of every episode, the success rate on tasks that report
+success, and Figure 4(b)'s value check: the critic's estimate against the true discounted return of the same
+episode from the same step.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+import tqdm
+
+from coworld import envs
+
+
+class Agent(Protocol):
+    def policy(
+        self, obs: np.ndarray, state: Any, mode: str = "eval", is_first: np.ndarray | None = None
+    ) -> tuple[np.ndarray, Any]: ...
+
+
+@dataclass
+class EvalResult:
+    """What :func:`evaluate` measured; ``to_json`` writes it."""
+
+    task: str
+    returns: list[float]
+    lengths: list[int]
+    successes: list[bool] | None = None
+    value_estimate: list[float] | None = None
+    """Per episode: the critic's mean estimate over the episode's steps."""
+    value_true: list[float] | None = None
+    """Per episode: the mean over the same steps of the discounted return actually received from there on."""
+    discount: float | None = None
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def mean(self) -> float:
+        return float(np.mean(self.returns))
+
+    @property
+    def std(self) -> float:
+        return float(np.std(self.returns))
+
+    @property
+    def success_rate(self) -> float | None:
+        return None if self.successes is None else float(np.mean(self.successes))
+
+    def summary(self) -> str:
+        text = f"{self.task}: return {self.mean:.1f} ± {self.std:.1f} over {len(self.returns)} episodes"
+        if self.success_rate is not None:
+            text += f", success {100 * self.success_rate:.0f}%"
+        if self.value_estimate is not None and self.value_true is not None:
+            text += (
+                f"; value estimate {np.mean(self.value_estimate):.2f} vs true discounted return"
+                f" {np.mean(self.value_true):.2f}"
+            )
+        return text
+
+    def to_dict(self) -> dict[str, Any]:
+        data = asdict(self)
+        data.update(mean=self.mean, std=self.std, success_rate=self.success_rate)
+        return data
+
+    def to_json(self, path: str | Path) -> None:
+        Path(path).parent.mkdir(parents=True, exist_ok=True)
+        Path(path).write_text(json.dumps(self.to_dict(), indent=2) + "\n")
+
+
+def discounted_returns(rewards: np.ndarray, discount: float) -> np.ndarray:
+    """G_t = sum_k discount^k r_{t+k} for every step of one episode; rewards (T,) -> (T,)."""
+    out = np.zeros(len(rewards), dtype=np.float64)
+    running = 0.0
+    for t in range(len(rewards) - 1, -1, -1):
+        running = rewards[t] + discount * running
+        out[t] = running
+    return out
+
+
+def evaluate(
+    agent: Agent,
+    task: str,
+    *,
+    episodes: int = 10,
+    workers: int = 1,
+    seed: int = 0,
+    discount: float | None = None,
+    video_episodes: int = 0,
+    progress: bool = False,
+) -> tuple[EvalResult, list[np.ndarray]]:
+    """Run ``episodes`` evaluation episodes of ``agent`` on ``task``.
+
+    Args:
+        discount: when given and the agent has ``value``, also measure the value check with this discount.
+        video_episodes: how many of the first episodes to keep frames of.
+
+    Returns:
+        The result, and the frames (T+1, H, W, 3) uint8 of the first ``video_episodes`` episodes.
+    """
+    workers = max(1, min(workers, episodes))
+    spec = envs.task_spec(task)
+    want_values = discount is not None and hasattr(agent, "value")
+    returns: list[float] = []
+    lengths: list[int] = []
+    successes: list[bool] = []
+    estimates: list[float] = []
+    trues: list[float] = []
+    videos: list[np.ndarray] = []
+    venv = envs.make_vector(task, workers, seed=seed)
+    bar = tqdm.tqdm(total=episodes, desc=f"eval {task}", unit="ep", disable=not progress, leave=False)
+    try:
+        done_episodes = 0
+        round_index = 0
+        while done_episodes < episodes:
+            n = min(workers, episodes - done_episodes)
+            obs, _ = venv.reset(seed=[seed + 1000 * round_index + i for i in range(workers)])
+            state = None
+            is_first = np.ones(workers, dtype=bool)
+            alive = np.zeros(workers, dtype=bool)
+            alive[:n] = True
+            ep_rewards = [[] for _ in range(workers)]
+            ep_values = [[] for _ in range(workers)]
+            ep_success = np.zeros(workers, dtype=bool)
+            frames = [[obs[i]] for i in range(workers)]
+            for _ in range(spec.episode_length):
+                action, state = agent.policy(obs, state, mode="eval", is_first=is_first)
+                if want_values:
+                    value = np.asarray(agent.value(state), dtype=np.float64)  # type: ignore[attr-defined]
+                obs, reward, terminated, truncated, info = venv.step(action)
+                is_first = np.zeros(workers, dtype=bool)
+                for i in np.flatnonzero(alive):
+                    ep_rewards[i].append(float(reward[i]))
+                    if want_values:
+                        ep_values[i].append(float(value[i]))
+                    if "success" in info:
+                        ep_success[i] |= bool(info["success"][i])
+                    if done_episodes + i < video_episodes:
+                        frames[i].append(obs[i])
+                alive &= ~(terminated | truncated)
+                if not alive.any():
+                    break
+            for i in range(n):
+                rewards = np.asarray(ep_rewards[i])
+                returns.append(float(rewards.sum()))
+                lengths.append(len(rewards))
+                successes.append(bool(ep_success[i]))
+                if want_values:
+                    estimates.append(float(np.mean(ep_values[i])))
+                    trues.append(float(np.mean(discounted_returns(rewards, discount))))  # type: ignore[arg-type]
+                if done_episodes + i < video_episodes:
+                    videos.append(np.stack(frames[i]))
+            done_episodes += n
+            round_index += 1
+            bar.update(n)
+    finally:
+        bar.close()
+        venv.close()
+    result = EvalResult(
+        task=task,
+        returns=returns,
+        lengths=lengths,
+        successes=successes if spec.family == "metaworld" else None,
+        value_estimate=estimates if want_values else None,
+        value_true=trues if want_values else None,
+        discount=discount if want_values else None,
+    )
+    return result, videos
+
+
+def write_video(path: str | Path, episodes: Sequence[np.ndarray], fps: int = 30, scale: int = 4) -> None:
+    """Write episodes of frames (T, H, W, 3) uint8 one after another as an MP4 (or GIF by suffix)."""
+    import imageio.v2 as imageio
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    frames = np.concatenate(list(episodes))
+    if scale > 1:
+        frames = frames.repeat(scale, axis=1).repeat(scale, axis=2)
+    if path.suffix.lower() == ".gif":
+        imageio.mimsave(path, list(frames), duration=1000 / fps, loop=0)
+    else:
+        imageio.mimsave(path, list(frames), fps=fps, macro_block_size=1)

@@ -1,0 +1,80 @@
+"""One logger with pluggable outputs: console, JSON lines and TensorBoard.
+
+Keys are namespaced (``wm/``, ``actor/``, ``critic/``, ``coworld/``, ``eval/``, ...). Every call to
+:meth:`Logger.log` writes one record at one step to every output.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import tqdm
+
+OUTPUTS = ("console", "jsonl", "tensorboard")
+
+
+class Logger:
+    """Writes scalar metrics to ``logdir/metrics.jsonl``, TensorBoard event files and the console.
+
+    Args:
+        logdir: run folder.
+        outputs: any of ``console``, ``jsonl``, ``tensorboard``.
+    """
+
+    def __init__(self, logdir: str | Path, *, outputs: Sequence[str] = OUTPUTS) -> None:
+        unknown = set(outputs) - set(OUTPUTS)
+        if unknown:
+            raise ValueError(f"unknown logger outputs {sorted(unknown)}; choose from {OUTPUTS}")
+        self.logdir = Path(logdir)
+        self.logdir.mkdir(parents=True, exist_ok=True)
+        self._console = "console" in outputs
+        self._jsonl = open(self.logdir / "metrics.jsonl", "a") if "jsonl" in outputs else None
+        self._tb = None
+        if "tensorboard" in outputs:
+            from torch.utils.tensorboard import SummaryWriter
+
+            self._tb = SummaryWriter(str(self.logdir / "tb"))
+        self._start = time.time()
+
+    def log(self, metrics: Mapping[str, Any], step: int) -> None:
+        """Record scalar ``metrics`` at ``step``; non-finite values are kept (as null in JSON)."""
+        scalars = {key: float(value) for key, value in metrics.items()}
+        if self._jsonl is not None:
+            record = {"step": step, "time": round(time.time() - self._start, 3)}
+            record.update({k: (v if math.isfinite(v) else None) for k, v in scalars.items()})
+            self._jsonl.write(json.dumps(record) + "\n")
+            self._jsonl.flush()
+        if self._tb is not None:
+            for key, value in scalars.items():
+                self._tb.add_scalar(key, value, step)
+            self._tb.flush()
+        if self._console and scalars:
+            text = "  ".join(f"{k} {v:.4g}" for k, v in sorted(scalars.items()))
+            tqdm.tqdm.write(f"[{step}] {text}")
+
+    def close(self) -> None:
+        if self._jsonl is not None:
+            self._jsonl.close()
+            self._jsonl = None
+        if self._tb is not None:
+            self._tb.close()
+            self._tb = None
+
+    def __enter__(self) -> Logger:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def read_metrics(logdir: str | Path) -> list[dict[str, Any]]:
+    """The records of ``logdir/metrics.jsonl``, in order."""
+    path = Path(logdir) / "metrics.jsonl"
+    if not path.exists():
+        return []
+    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]

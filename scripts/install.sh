@@ -1,0 +1,43 @@
+#!/usr/bin/env bash
+# Install coworld and everything it needs into ./.venv (idempotent: a second run only checks).
+#   - Debian packages for headless MuJoCo rendering (EGL with Mesa's software renderer), when missing
+#   - a virtual environment with torch 2.13.0 (CPU build unless a torch is already in the venv),
+#     the pinned simulator stack and coworld itself in editable mode with its dev extras.
+# Environment: PYTHON (interpreter for the venv, default python3), VENV (default .venv),
+# TORCH_PIP_ARGS (extra pip arguments for the torch install).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+PYTHON=${PYTHON:-python3}
+VENV=${VENV:-.venv}
+
+# 1. Debian packages for EGL rendering (libEGL + Mesa's llvmpipe).
+need=()
+for pkg in libegl1 libgl1 libegl-mesa0 libgl1-mesa-dri libglvnd0; do
+  dpkg -s "$pkg" >/dev/null 2>&1 || need+=("$pkg")
+done
+if ((${#need[@]})); then
+  if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
+    echo "install: apt-get install ${need[*]}"
+    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "${need[@]}" >/dev/null
+  else
+    echo "install: missing Debian packages for rendering: ${need[*]} (run: sudo apt-get install ${need[*]})" >&2
+    exit 1
+  fi
+fi
+
+# 2. The virtual environment.
+[ -x "$VENV/bin/python" ] || "$PYTHON" -m venv "$VENV"
+pip=("$VENV/bin/python" -m pip -q --disable-pip-version-check)
+# A GPU user who installed a CUDA torch into the venv first keeps it; otherwise the CPU build.
+if ! "$VENV/bin/python" -c "import torch" >/dev/null 2>&1; then
+  echo "install: torch==2.13.0 (CPU build)"
+  # TORCH_PIP_ARGS lets a user point pip at another index, e.g. PyTorch's CPU wheel index.
+  # shellcheck disable=SC2086
+  "${pip[@]}" install "torch==2.13.0" ${TORCH_PIP_ARGS:-} 2>&1 | grep -v "^WARNING: Location" || true
+  "$VENV/bin/python" -c "import torch" || { echo "install: torch failed to install" >&2; exit 1; }
+fi
+echo "install: coworld and its pinned dependencies"
+"${pip[@]}" install -e ".[dev]" 2>&1 | grep -v "^WARNING: Location" || true
+"$VENV/bin/python" -c "import coworld, dm_control, metaworld, h5py" || { echo "install: failed" >&2; exit 1; }
+"$VENV/bin/python" -m pip check >/dev/null || { "$VENV/bin/python" -m pip check >&2; exit 1; }
+echo "install: done ($("$VENV/bin/coworld" --version))"
