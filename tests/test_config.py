@@ -1,0 +1,73 @@
+import dataclasses
+
+import pytest
+
+from coworld.config import Config, config_keys, from_dict, make_config, to_dict
+from coworld.errors import ConfigError
+
+
+def test_presets_layer_on_defaults():
+    paper, tiny = make_config("paper"), make_config("tiny")
+    assert paper == Config()
+    assert paper.world_model.deter == 600 and paper.world_model.stoch == 32 and paper.world_model.classes == 32
+    assert (paper.train.batch_size, paper.train.seq_len) == (50, 50)
+    assert (paper.coworld.beta2, paper.coworld.k, paper.coworld.alpha) == (1.5, 0.2, 0.2)
+    assert tiny.world_model.deter < paper.world_model.deter
+    assert tiny.actor_critic.lambda_ == paper.actor_critic.lambda_  # untouched keys keep the defaults
+
+
+def test_overrides_cast_to_the_default_type():
+    config = make_config("tiny", ["world_model.lr=3e-4", "train.steps=1e4", "coworld.align=false", "device=cpu"])
+    assert config.world_model.lr == pytest.approx(3e-4)
+    assert config.train.steps == 10_000 and isinstance(config.train.steps, int)
+    assert config.coworld.align is False
+    assert config.device == "cpu"
+
+
+@pytest.mark.parametrize(
+    "item, match",
+    [
+        ("world_model.nope=1", "unknown config key 'world_model.nope'"),
+        ("nope=1", "unknown config key 'nope'"),
+        ("train.steps=ten", "takes a int"),
+        ("train.steps=1.5", "takes a int"),
+        ("coworld.align=maybe", "takes a bool"),
+        ("world_model=1", "is a section"),
+        ("seed.x=1", "unknown config key"),
+        ("novalue", "section.key=value"),
+    ],
+)
+def test_bad_overrides_raise_one_line(item, match):
+    with pytest.raises(ConfigError, match=match) as info:
+        make_config("tiny", [item])
+    assert "\n" not in str(info.value)
+
+
+def test_unknown_preset():
+    with pytest.raises(ConfigError, match="unknown preset 'huge'"):
+        make_config("huge")
+
+
+def test_config_is_frozen_and_round_trips():
+    config = make_config("tiny", ["seed=3"])
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        config.seed = 4  # type: ignore[misc]
+    assert from_dict(to_dict(config)) == config
+    assert "world_model.kl_balance" in config_keys(config)
+
+
+def test_every_field_is_documented():
+    import ast
+    import inspect
+
+    import coworld.config as module
+
+    tree = ast.parse(inspect.getsource(module))
+    for node in tree.body:
+        if isinstance(node, ast.ClassDef) and node.name.endswith("Config") and node.name != "Config":
+            body = node.body
+            for i, stmt in enumerate(body):
+                if isinstance(stmt, ast.AnnAssign):
+                    following = body[i + 1] if i + 1 < len(body) else None
+                    documented = isinstance(following, ast.Expr) and isinstance(following.value, ast.Constant)
+                    assert documented, f"{node.name}.{stmt.target.id} has no docstring"

@@ -1,0 +1,31 @@
+import json
+
+import pytest
+
+from coworld.config import make_config
+from coworld.errors import CoworldError
+from coworld.training.logger import Logger, read_metrics
+from coworld.training.run import load_run, prepare_run_dir
+
+
+def test_prepare_then_resume_then_refuse(tmp_path):
+    config = make_config("tiny")
+    assert prepare_run_dir(tmp_path / "run", config, {"algo": "dreamerv2", "task": "toy_reach"}) is False
+    assert prepare_run_dir(tmp_path / "run", config, {"algo": "dreamerv2", "task": "toy_reach"}) is True
+    saved, info = load_run(tmp_path / "run")
+    assert saved == config and info["task"] == "toy_reach"
+    with pytest.raises(CoworldError, match="train.steps: saved 2000, now 5"):
+        prepare_run_dir(tmp_path / "run", make_config("tiny", ["train.steps=5"]), {"algo": "dreamerv2"})
+    with pytest.raises(CoworldError, match="task='toy_reach', not 'walker_walk'"):
+        prepare_run_dir(tmp_path / "run", config, {"task": "walker_walk"})
+    assert json.loads((tmp_path / "run" / "config.json").read_text())["train"]["steps"] == 2000
+
+
+def test_logger_writes_jsonl_and_tensorboard(tmp_path):
+    with Logger(tmp_path, outputs=("jsonl", "tensorboard")) as logger:
+        logger.log({"wm/loss": 1.5, "eval/return": float("nan")}, step=10)
+        logger.log({"wm/loss": 1.0}, step=20)
+    records = read_metrics(tmp_path)
+    assert [r["step"] for r in records] == [10, 20]
+    assert records[0]["wm/loss"] == 1.5 and records[0]["eval/return"] is None
+    assert list((tmp_path / "tb").glob("events.out.tfevents.*"))
