@@ -1,0 +1,287 @@
+"""CoWorld's domain-collaborative losses (paper Eqs. 3-6) as pure functions.
+
+Each function computes one equation of the paper, unreduced: it returns one value per batch element and time
+step (``(B, T)`` for world-model sequences, ``(H, N)`` for imagined trajectories of horizon ``H`` started from
+``N`` states). The caller reduces and applies the scales (``beta2``, ``alpha``), so the stop-gradients and the
+per-element arithmetic here can be held side by side with the paper:
+
+* Eq. 3, representation alignment: :func:`alignment_loss` (categorical posteriors, the paper's reading) and
+  :func:`embedding_alignment_loss` (conv embeddings, the authors' public release).
+* Eqs. 4-5, target-modulated source reward: :func:`relabel_reward` and :func:`source_reward_loss_on_target`.
+* Eq. 6, max-min value regularisation: :func:`value_regulariser`, :func:`max_min_active` and the full critic
+  objective :func:`regularised_critic_loss`.
+
+"The release" below means the authors' public code (qiwang067/CoWorld, a fork of jsikyoon/dreamer-torch);
+every place it differs from the paper text is stated next to the option that reproduces it.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+__all__ = [
+    "alignment_loss",
+    "embedding_alignment_loss",
+    "max_min_active",
+    "regularised_critic_loss",
+    "relabel_reward",
+    "source_reward_loss_on_target",
+    "value_regulariser",
+]
+
+
+def _check_same_shape(**tensors: Tensor) -> None:
+    """Raise ``ValueError`` unless all tensors have one shape (silent broadcasting hides bugs here)."""
+    shapes = {name: tuple(t.shape) for name, t in tensors.items()}
+    if len(set(shapes.values())) > 1:
+        listed = ", ".join(f"{name}={shape}" for name, shape in shapes.items())
+        raise ValueError(f"expected tensors of one shape, got {listed}")
+
+
+def _check_ndim(name: str, tensor: Tensor, ndim: int, dims: str) -> None:
+    """Raise ``ValueError`` unless ``tensor`` has ``ndim`` dimensions, named ``dims`` in the message."""
+    if tensor.ndim != ndim:
+        raise ValueError(f"{name} must have shape {dims}, got {tuple(tensor.shape)}")
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Eq. 3: representation alignment
+# --------------------------------------------------------------------------------------------------------------
+
+
+def alignment_loss(source_logits: Tensor, target_logits: Tensor) -> Tensor:
+    """Domain KL of Eq. 3 between the source and target posteriors on the same target frames.
+
+    Paper, Eq. 3 (the last term of the target world-model loss)::
+
+        L_wm = E[ sum_t  ... + beta2 * KL[ sg(e^(S)_phi'(o_t)) || e^(T)_phi(o_t) ] ]
+
+    The same target-dataset sequences go through the source world model (frozen here: ``sg``) and the target
+    world model. The paper writes the encoders ``e(o_t)`` but speaks of "the latent state distributions" they
+    produce; DreamerV2's conv encoder is deterministic, so here the distributions are the posteriors
+    ``q(z_t | h_t, o_t)``. With discrete latents each posterior is ``S`` independent categoricals over ``K``
+    classes, so the KL is the sum over the ``S`` variables of::
+
+        KL(p_S || p_T) = sum_k p_S[k] * (log p_S[k] - log p_T[k]),   p = softmax(logits)
+
+    The source side is detached, so only the target model receives gradient; the gradient of the KL with
+    respect to ``target_logits`` is ``softmax(target_logits) - softmax(source_logits)``.
+
+    Release difference: the release aligns the conv-encoder embeddings, not the posteriors; see
+    :func:`embedding_alignment_loss`, which reproduces it.
+
+    Args:
+        source_logits: ``(B, T, S, K)`` posterior logits of the source world model on target frames.
+        target_logits: ``(B, T, S, K)`` posterior logits of the target world model on the same frames.
+
+    Returns:
+        ``(B, T)`` KL per step, unscaled (the caller multiplies by ``beta2``).
+    """
+    _check_ndim("source_logits", source_logits, 4, "(B, T, S, K)")
+    _check_same_shape(source_logits=source_logits, target_logits=target_logits)
+    log_p = F.log_softmax(source_logits.detach(), dim=-1)
+    log_q = F.log_softmax(target_logits, dim=-1)
+    kl_per_variable = (log_p.exp() * (log_p - log_q)).sum(dim=-1)  # (B, T, S)
+    return kl_per_variable.sum(dim=-1)
+
+
+def embedding_alignment_loss(source_embed: Tensor, target_embed: Tensor) -> Tensor:
+    """The release's reading of Eq. 3: KL between softmax-normalised encoder embeddings.
+
+    Paper, Eq. 3: ``beta2 * KL[ sg(e^(S)(o_t)) || e^(T)(o_t) ]``. The release applies it to the conv encoder's
+    output ``e(o_t)`` itself (1024-d there), treating ``softmax`` over the embedding dimension as a distribution::
+
+        KL( softmax(sg(e_S)) || softmax(e_T) ) = sum_e p_S[e] * (log p_S[e] - log p_T[e])
+
+    which is what ``torch.nn.KLDivLoss()(log_softmax(e_T), softmax(sg(e_S)))`` computes per row.
+
+    Reduction, to reproduce the release: it uses ``KLDivLoss(reduction="batchmean")`` on ``(B, T, E)`` tensors,
+    which divides the total by ``B`` only, i.e. ``loss.sum(dim=1).mean()`` of this function's output (a sum
+    over time, ``T`` times larger than ``loss.mean()``), then multiplies by ``beta2``.
+
+    Args:
+        source_embed: ``(B, T, E)`` source-encoder embeddings of target frames.
+        target_embed: ``(B, T, E)`` target-encoder embeddings of the same frames.
+
+    Returns:
+        ``(B, T)`` KL per step, unscaled; gradient reaches ``target_embed`` only.
+    """
+    _check_ndim("source_embed", source_embed, 3, "(B, T, E)")
+    _check_same_shape(source_embed=source_embed, target_embed=target_embed)
+    log_p = F.log_softmax(source_embed.detach(), dim=-1)
+    log_q = F.log_softmax(target_embed, dim=-1)
+    return (log_p.exp() * (log_p - log_q)).sum(dim=-1)
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Eqs. 4-5: target-modulated source reward
+# --------------------------------------------------------------------------------------------------------------
+
+
+def relabel_reward(source_pred: Tensor, target_reward: Tensor, k: float) -> Tensor:
+    """Target-modulated source reward of Eq. 4, for target-dataset sequences.
+
+    Paper, Eq. 4 (the target-batch case)::
+
+        r^(S)_t = k * r^(S)_phi'(h^(T)_t, z^(T)_t) + (1 - k) * r^(T)_t
+
+    where ``h^(T), z^(T)`` are the source world model's states on the target sequence. The prediction is a
+    label, not a path for gradient, so ``source_pred`` is detached; so is the result unless the caller passes a
+    ``target_reward`` that requires grad (dataset rewards never do).
+
+    Release difference: the release writes ``(1 - k) * pred + k * r_T``; pass ``k = 1 - reward_k`` to reproduce
+    a release run with ``reward_k``. Table 3 of the paper gives ``k = 0.2``.
+
+    Args:
+        source_pred: ``(B, T)`` reward the source reward head predicts on the target sequence (its mean/mode).
+        target_reward: ``(B, T)`` rewards stored in the target dataset.
+        k: weight of the source prediction, in ``[0, 1]``; ``k = 0`` gives the target reward.
+
+    Returns:
+        ``(B, T)`` relabelled rewards, the regression target of :func:`source_reward_loss_on_target`.
+    """
+    if not 0.0 <= k <= 1.0:
+        raise ValueError(f"k must be in [0, 1], got {k}")
+    _check_same_shape(source_pred=source_pred, target_reward=target_reward)
+    return k * source_pred.detach() + (1.0 - k) * target_reward
+
+
+def source_reward_loss_on_target(pred_mean: Tensor, relabelled: Tensor) -> Tensor:
+    """Target-batch term of Eq. 5: the source reward head's negative log-likelihood of the relabelled reward.
+
+    Paper, Eq. 5::
+
+        L_r = E_{B^(S)}[ sum_t -ln r^(S)_phi'(h^(S)_t, z^(S)_t) ] + E_{B^(T)}[ sum_t -ln r^(S)_phi'(h^(T)_t, z^(T)_t) ]
+
+    This is the second expectation, with the relabelled reward of Eq. 4 as the observed value. For a reward
+    head that is a unit-variance Gaussian (DreamerV2's, and the release's), ``-ln N(r; mean, 1) =
+    0.5 * (mean - r)^2 + 0.5 * ln(2 pi)``; the constant is dropped, so the term has the same form as the ordinary
+    reward term on source batches (the first expectation) and an MSE reward head gives the same gradient.
+
+    Note: when ``relabelled`` was built from the same head's prediction at the same states (as Eq. 4 does),
+    the loss equals ``0.5 * (1 - k)^2 * (pred - r_T)^2``: ``k`` damps how fast the source head moves toward the
+    target reward rather than fixing a blended target.
+
+    Release difference: the release mixes this term with the source-batch term as ``(1 - eta) * target +
+    eta * source``, ``eta = max(1 - step / 2e5, 0.2)``, with a step counter that never advances; the paper sums
+    the two expectations with weight 1 each. The weighting is the caller's.
+
+    Args:
+        pred_mean: ``(B, T)`` mean reward of the source reward head on the target sequence (with gradient).
+        relabelled: ``(B, T)`` output of :func:`relabel_reward`; treated as a constant label.
+
+    Returns:
+        ``(B, T)`` negative log-likelihood up to its constant.
+    """
+    _check_same_shape(pred_mean=pred_mean, relabelled=relabelled)
+    return 0.5 * (pred_mean - relabelled.detach()).square()
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Eq. 6: max-min value regularisation
+# --------------------------------------------------------------------------------------------------------------
+
+
+def _check_zeta(zeta: float) -> None:
+    """``zeta`` rescales values; a non-positive one would flip or cancel the regulariser."""
+    if zeta <= 0.0:
+        raise ValueError(f"zeta must be positive, got {zeta}")
+
+
+def max_min_active(target_value: Tensor, source_value: Tensor, zeta: float) -> Tensor:
+    """Where the max-min term of Eq. 6 has gradient: ``zeta * v_T(z) > v_S(z)``.
+
+    Log ``active.float().mean()`` to see how often the source critic caps the target critic. At a tie the term
+    is taken as inactive, matching :func:`value_regulariser`.
+
+    Args:
+        target_value: ``(H, N)`` target critic values on imagined target states.
+        source_value: ``(H, N)`` source critic values on the same states.
+        zeta: scale of the target values, positive.
+
+    Returns:
+        ``(H, N)`` bool mask, no gradient.
+    """
+    _check_zeta(zeta)
+    _check_same_shape(target_value=target_value, source_value=source_value)
+    return zeta * target_value.detach() > source_value.detach()
+
+
+def value_regulariser(target_value: Tensor, source_value: Tensor, zeta: float) -> Tensor:
+    """Max-min term of Eq. 6: ``max(zeta * v_T(z), sg(v_S(z)))``.
+
+    Paper, Eq. 6 (second term, before ``alpha``)::
+
+        max( zeta * v^(T)_xi(z_t), sg(v^(S)_xi'(z_t)) )
+
+    Where the source critic is higher the term is the constant ``sg(v_S)`` and gives the target critic no
+    gradient; where ``zeta * v_T`` is higher its gradient with respect to ``v_T`` is ``zeta``, so minimising it
+    pushes the target value down toward the source value. The paper's prose states the condition as
+    ``v_T >= v_S``; this follows the equation (``zeta * v_T``). At an exact tie the term counts as inactive
+    (gradient 0), where ``torch.maximum`` would split the gradient in halves.
+
+    Release difference: the release has no ``zeta`` (``zeta = 1`` reproduces it) and feeds the source critic
+    the target world model's imagined features directly.
+
+    Args:
+        target_value: ``(H, N)`` target critic values ``v_T(z)`` (with gradient).
+        source_value: ``(H, N)`` source critic values ``v_S(z)`` on the same states; detached here.
+        zeta: scale of the target values, positive (Table 3 gives none; 1 matches the release).
+
+    Returns:
+        ``(H, N)`` term, unscaled (the caller multiplies by ``alpha``).
+    """
+    _check_zeta(zeta)
+    _check_same_shape(target_value=target_value, source_value=source_value)
+    scaled = zeta * target_value
+    capped = source_value.detach()
+    return torch.where(scaled > capped, scaled, capped)
+
+
+def regularised_critic_loss(
+    value: Tensor,
+    target: Tensor,
+    source_value: Tensor,
+    alpha: float,
+    zeta: float,
+    weight: Tensor | None = None,
+) -> Tensor:
+    """Target critic objective of Eq. 6, term by term.
+
+    Paper, Eq. 6::
+
+        L(xi) = E[ sum_{t=1}^{H-1}  0.5 * (v^(T)_xi(z_t) - sg(V^(T)_t))^2
+                                  + alpha * max( zeta * v^(T)_xi(z_t), sg(v^(S)_xi'(z_t)) ) ]
+
+    The first term is DreamerV2's critic regression onto the lambda-returns ``V_t`` (a unit-variance Gaussian
+    log-likelihood up to its constant); the second is :func:`value_regulariser`. If ``weight`` is given
+    (DreamerV2's cumulative imagination discount), it multiplies the whole per-step loss, as in DreamerV2 and
+    the release; it is detached. Pass the ``H`` steps that Eq. 6 sums over (DreamerV2 fits values on all but the
+    last imagined state).
+
+    Release difference: the release uses ``zeta = 1`` and the same ``weight`` on both terms, then averages
+    over all elements; Table 3 gives ``alpha = 0.2``, the release uses other values per suite.
+
+    Args:
+        value: ``(H, N)`` target critic values ``v_T(z)`` (with gradient).
+        target: ``(H, N)`` lambda-returns ``V_lambda``; detached here.
+        source_value: ``(H, N)`` source critic values ``v_S(z)`` on the same states; detached here.
+        alpha: scale of the max-min term, non-negative.
+        zeta: scale of the target values inside the max, positive.
+        weight: optional ``(H, N)`` per-step weight; detached here.
+
+    Returns:
+        ``(H, N)`` per-step loss; gradient with respect to ``value`` is
+        ``weight * ((v_T - V_lambda) + alpha * zeta * active)``.
+    """
+    if alpha < 0.0:
+        raise ValueError(f"alpha must be non-negative, got {alpha}")
+    _check_same_shape(value=value, target=target, source_value=source_value)
+    fit = 0.5 * (value - target.detach()).square()
+    loss = fit + alpha * value_regulariser(value, source_value, zeta)
+    if weight is not None:
+        _check_same_shape(value=value, weight=weight)
+        loss = weight.detach() * loss
+    return loss
