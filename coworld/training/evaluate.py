@@ -189,3 +189,34 @@ def write_video(path: str | Path, episodes: Sequence[np.ndarray], fps: int = 30,
         imageio.mimsave(path, list(frames), duration=1000 / fps, loop=0)
     else:
         imageio.mimsave(path, list(frames), fps=fps, macro_block_size=1)
+
+
+def load_trained_agent(path: Path, device: str = "auto") -> tuple[Any, dict[str, Any], Any]:
+    """Rebuild the agent of a run folder (or its checkpoint file) for evaluation.
+
+    Returns ``(agent, run_info, config)``; problems raise CheckpointError with one line.
+    """
+    from coworld.agents.factory import make_agent
+    from coworld.errors import CheckpointError
+    from coworld.training.checkpoint import CHECKPOINT_NAME, load_checkpoint
+    from coworld.training.run import load_run, resolve_device
+
+    path = Path(path)
+    run_dir = path if path.is_dir() else path.parent
+    ckpt = path / CHECKPOINT_NAME if path.is_dir() else path
+    if not ckpt.exists():
+        raise CheckpointError(f"no checkpoint at {ckpt}; pass a run folder made by `coworld train` or its checkpoint")
+    config, info = load_run(run_dir)
+    state = load_checkpoint(ckpt)
+    from dataclasses import replace
+
+    config = replace(config, device=device)
+    torch_device = resolve_device(device)
+    agent = make_agent(
+        info["algo"], config=config, action_size=envs.task_spec(info["target"]).action_size, device=torch_device
+    )
+    try:
+        agent.load_state_dict(state["agent"])
+    except (KeyError, RuntimeError, ValueError) as err:
+        raise CheckpointError(f"{ckpt} does not fit a {info['algo']} agent of this config ({str(err)[:100]})") from None
+    return agent, info, config

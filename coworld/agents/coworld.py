@@ -1,0 +1,293 @@
+"""CoWorld: an online source agent and an offline target agent that learn together (paper Alg. 1).
+
+Both agents are DreamerV2 (:class:`coworld.agents.dreamerv2.DreamerV2`). The three domain-collaborative terms
+(:mod:`coworld.losses.coworld`) enter through the DreamerV2 update's hooks:
+
+* target world-model step (Alg. 1 line 9, Eq. 3): ``+ beta2 * KL[sg(e_S(o_T)) || e_T(o_T)]`` on the target
+  batch, the source model run over the same target frames without gradient;
+* target critic step (line 10, Eq. 6): ``+ alpha * max(zeta * v_T(z), sg(v_S(z)))`` on the target agent's
+  imagined states, ``v_S`` being the source critic fed the target features;
+* source world-model step (lines 13-15, Eqs. 4-5): the source model is also run over a target batch and its
+  reward head regresses ``k * sg(r_S_pred) + (1 - k) * r_T``.
+
+Schedule: pretrain the source agent online for ``coworld.pretrain_steps`` environment steps, then
+``coworld.iterations`` times: ``target_updates`` (K1) target updates on dataset batches, then
+``source_updates`` (K2) source updates interleaved with source environment steps at the train ratio.
+A checkpoint is written after every phase; a killed run resumes from the last one. Each target phase draws
+its batches from a sampler seeded by (seed, iteration), so a resumed run sees the batches an uninterrupted one
+would have.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator, Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import tqdm
+from torch import Tensor
+
+from coworld.agents.dreamerv2 import DreamerV2
+from coworld.config import Config, to_dict
+from coworld.data import DatasetWriter, open_dataset
+from coworld.envs import task_spec
+from coworld.losses.coworld import (
+    alignment_loss,
+    embedding_alignment_loss,
+    max_min_active,
+    relabel_reward,
+    source_reward_loss_on_target,
+    value_regulariser,
+)
+from coworld.training.checkpoint import CHECKPOINT_NAME, load_checkpoint, rng_state, save_checkpoint, set_rng_state
+from coworld.training.evaluate import evaluate
+from coworld.training.logger import Logger
+from coworld.training.online import OnlineTrainer
+
+CHECKPOINT_KIND = "coworld"
+UNBOUNDED = 2**62  # source phases end by pausing after K2 updates, never by a step limit
+ALIGN_ON = ("latent", "embedding")
+
+
+class CoWorld:
+    """The two agents and CoWorld's update steps.
+
+    Args:
+        config: resolved config; ``config.coworld`` holds the CoWorld terms and their switches.
+        action_size: shared by source and target (checked by the caller).
+    """
+
+    def __init__(self, *, config: Config, action_size: int, device: torch.device | str) -> None:
+        if config.coworld.align_on not in ALIGN_ON:
+            from coworld.errors import ConfigError
+
+            raise ConfigError(f"coworld.align_on must be one of {', '.join(ALIGN_ON)}, not {config.coworld.align_on!r}")
+        self.config = config
+        self.source = DreamerV2(config=config, action_size=action_size, device=device)
+        self.target = DreamerV2(config=config, action_size=action_size, device=device)
+        self.device = self.target.device
+        self.target_batches: Iterator[dict[str, np.ndarray]] | None = None
+        """Target-dataset batches for the source agent's relabelled-reward term (set by the schedule)."""
+
+    # -- the target agent's update (Alg. 1 lines 8-10) ------------------------------------------------------------
+    def train_target(self, batch: Mapping[str, np.ndarray]) -> dict[str, float]:
+        """One target world-model step with Eq. 3 and one target actor-critic step with Eq. 6."""
+        cfg = self.config.coworld
+        batch_t = self.target.to_batch(batch)
+        extra = None
+        if cfg.align:
+            with torch.no_grad():
+                source_post, _, source_embed = self.source.world_model.observe(batch_t)
+
+            def extra(_: dict[str, Tensor], aux: dict[str, Any]) -> dict[str, Tensor]:
+                if cfg.align_on == "latent":
+                    term = alignment_loss(source_post["logits"], aux["post"]["logits"])
+                else:
+                    term = embedding_alignment_loss(source_embed, aux["embed"])
+                return {"align": cfg.beta2 * term.mean()}
+
+        metrics, post = self.target.train_world_model(batch_t, extra)
+        if cfg.align:
+            metrics["coworld/align_kl"] = metrics.pop("wm/align") / cfg.beta2
+
+        regulariser = None
+        seen: dict[str, Tensor] = {}
+        if cfg.value_reg:
+            source_critic = self.source.actor_critic.critic
+
+            def regulariser(feat: Tensor, value: Tensor) -> Tensor:
+                with torch.no_grad():
+                    source_value = source_critic(feat).mean
+                seen.update(
+                    target=value.detach().mean(),
+                    source=source_value.mean(),
+                    active=max_min_active(value.detach(), source_value, cfg.zeta).float().mean(),
+                )
+                return cfg.alpha * value_regulariser(value, source_value, cfg.zeta)
+
+        metrics.update(self.target.train_actor_critic(post, regulariser, is_terminal=batch_t["is_terminal"]))
+        if seen:
+            metrics.update({f"coworld/{key}_value": float(seen[key]) for key in ("target", "source")})
+            metrics["coworld/maxmin_active"] = float(seen["active"])
+        self.target.updates += 1
+        return {f"target/{key}": value for key, value in metrics.items()}
+
+    # -- the source agent's update (Alg. 1 lines 12-16) -----------------------------------------------------------
+    def train_source(self, batch: Mapping[str, np.ndarray]) -> dict[str, float]:
+        """One source world-model step (with Eqs. 4-5 on a target batch) and one source actor-critic step."""
+        cfg = self.config.coworld
+        extra = None
+        if cfg.reward_relabel and self.target_batches is not None:
+            target_batch = self.source.to_batch(next(self.target_batches))
+
+            def extra(_: dict[str, Tensor], __: dict[str, Any]) -> dict[str, Tensor]:
+                post, _, _ = self.source.world_model.observe(target_batch)
+                pred = self.source.world_model.reward_head(self.source.world_model.features(post)).mean
+                label = relabel_reward(pred, target_batch["reward"].float(), cfg.k)
+                return {"relabel": source_reward_loss_on_target(pred, label).mean()}
+
+        batch_t = self.source.to_batch(batch)
+        metrics, post = self.source.train_world_model(batch_t, extra)
+        if "wm/relabel" in metrics:
+            metrics["coworld/relabel_reward_loss"] = metrics.pop("wm/relabel")
+        metrics.update(self.source.train_actor_critic(post, is_terminal=batch_t["is_terminal"]))
+        self.source.updates += 1
+        return {f"source/{key}": value for key, value in metrics.items()}
+
+    # -- acting (the target agent acts in the target domain) --------------------------------------------------------
+    def policy(self, obs: np.ndarray, state: Any = None, mode: str = "eval", is_first: np.ndarray | None = None):
+        return self.target.policy(obs, state, mode, is_first=is_first)
+
+    def value(self, state: Any) -> np.ndarray:
+        return self.target.value(state)
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"target": self.target.state_dict(), "source": self.source.state_dict()}
+
+    def load_state_dict(self, state: Mapping[str, Any]) -> None:
+        self.target.load_state_dict(state["target"])
+        self.source.load_state_dict(state["source"])
+
+
+class _SourceLearner:
+    """What the online trainer drives in the source phases: the source policy, CoWorld's source update."""
+
+    def __init__(self, coworld: CoWorld) -> None:
+        self.coworld = coworld
+        self.device = coworld.device
+
+    def policy(self, *args: Any, **kwargs: Any) -> Any:
+        return self.coworld.source.policy(*args, **kwargs)
+
+    def value(self, state: Any) -> np.ndarray:
+        return self.coworld.source.value(state)
+
+    def train(self, batch: Mapping[str, np.ndarray]) -> dict[str, float]:
+        return self.coworld.train_source(batch)
+
+    def state_dict(self) -> dict[str, Any]:
+        return self.coworld.source.state_dict()
+
+    def load_state_dict(self, state: Mapping[str, Any]) -> None:
+        self.coworld.source.load_state_dict(state)
+
+
+def train_coworld(job: Any, *, device: torch.device, resumed: bool, progress: bool = True) -> dict[str, Any]:
+    """Run Algorithm 1 for a checked :class:`coworld.training.train.TrainJob`; resumes its run folder."""
+    config: Config = job.config
+    cfg = config.coworld
+    logdir = Path(job.logdir)
+    spec = task_spec(job.target)
+    agent = CoWorld(config=config, action_size=spec.action_size, device=device)
+    dataset = open_dataset(job.dataset)
+    ckpt_path = logdir / CHECKPOINT_NAME
+    progress_state = {"iteration": 0, "phase": "pretrain", "last_eval": None}
+
+    writer = DatasetWriter(
+        logdir / "source_replay.h5",
+        task=job.source,
+        env_config={"task": job.source},
+        quality="medium-replay",
+        collector={"algorithm": "coworld-source", "seed": config.seed},
+        action_size=spec.action_size,
+        resume=True,
+    )
+    with Logger(logdir) as logger, writer:
+        source_trainer = OnlineTrainer(
+            agent=_SourceLearner(agent),
+            task=job.source,
+            config=config,
+            logdir=logdir / "source",
+            writer=writer,
+            logger=logger,
+            metric_prefix="",
+        )
+        # restore: the combined checkpoint once past pretraining, else the pretraining checkpoint
+        source_trainer.restore()
+        if ckpt_path.exists():
+            state = load_checkpoint(ckpt_path, map_location=device)
+            if state.get("kind") != CHECKPOINT_KIND:
+                from coworld.errors import CheckpointError
+
+                raise CheckpointError(f"{ckpt_path} is a {state.get('kind')!r} checkpoint, not a coworld one")
+            agent.target.load_state_dict(state["agent"])
+            agent.source.load_state_dict(state["source"])
+            source_trainer.updates = int(state["source_updates"])
+            progress_state.update(state["progress"])
+            set_rng_state(state["rng"])
+
+        def save() -> None:
+            save_checkpoint(
+                ckpt_path,
+                {
+                    "kind": CHECKPOINT_KIND,
+                    "task": job.target,
+                    "source_task": job.source,
+                    "config": to_dict(config),
+                    "agent": agent.target.state_dict(),
+                    "source": agent.source.state_dict(),
+                    "source_updates": source_trainer.updates,
+                    "progress": dict(progress_state),
+                    "rng": rng_state(),
+                },
+            )
+
+        try:
+            if progress_state["phase"] == "pretrain":
+                source_trainer.run(max_steps=cfg.pretrain_steps, progress=progress)
+                progress_state["phase"] = "target"
+                save()
+            bar = tqdm.tqdm(
+                total=cfg.iterations, initial=progress_state["iteration"], unit="iter", disable=not progress
+            )
+            while progress_state["iteration"] < cfg.iterations:
+                iteration = int(progress_state["iteration"])
+                seed = config.seed + 1000 * (iteration + 1)
+                agent.target_batches = iter(dataset.sampler(config.train.batch_size, config.train.seq_len, seed=seed))
+                if progress_state["phase"] == "target":
+                    for _ in range(cfg.target_updates):
+                        metrics = agent.train_target(next(agent.target_batches))
+                    logger.log(metrics, agent.target.updates)
+                    progress_state["phase"] = "source"
+                    save()
+                if progress_state["phase"] == "source":
+                    goal = source_trainer.updates + cfg.source_updates
+                    source_trainer.run(
+                        max_steps=UNBOUNDED,
+                        progress=False,
+                        should_pause=lambda trainer, goal=goal: trainer.updates >= goal,
+                    )
+                    if (iteration + 1) % cfg.eval_every == 0 or iteration + 1 == cfg.iterations:
+                        result, _ = evaluate(
+                            agent,
+                            job.target,
+                            episodes=config.train.eval_episodes,
+                            workers=min(config.train.envs, config.train.eval_episodes),
+                            seed=config.seed + 10_000,
+                            discount=config.actor_critic.discount,
+                        )
+                        progress_state["last_eval"] = result.mean
+                        metrics = {"eval/return": result.mean, "eval/return_std": result.std}
+                        if result.success_rate is not None:
+                            metrics["eval/success"] = result.success_rate
+                        if result.value_estimate is not None:
+                            metrics["eval/value_estimate"] = float(np.mean(result.value_estimate))
+                            metrics["eval/value_true"] = float(np.mean(result.value_true))
+                        logger.log(metrics, agent.target.updates)
+                        bar.set_postfix(eval_return=f"{result.mean:.1f}")
+                    progress_state.update(iteration=iteration + 1, phase="target")
+                    save()
+                    bar.update(1)
+            bar.close()
+        finally:
+            source_trainer.close()
+            dataset.close()
+    return {
+        "logdir": str(logdir),
+        "iterations": progress_state["iteration"],
+        "target_updates": agent.target.updates,
+        "source_steps": source_trainer.steps,
+        "last_eval_return": progress_state["last_eval"],
+    }

@@ -1,0 +1,22 @@
+"""Build an agent by algorithm name (what ``coworld train`` and ``coworld eval`` share)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+
+from coworld.config import Config
+
+
+def make_agent(algo: str, *, config: Config, action_size: int, device: torch.device | str) -> Any:
+    """The agent whose ``policy`` is evaluated for ``algo`` (for CoWorld: the target agent, a DreamerV2)."""
+    if algo in ("coworld", "dreamerv2"):
+        from coworld.agents.dreamerv2 import DreamerV2
+
+        return DreamerV2(config=config, action_size=action_size, device=device)
+    if algo in ("curl", "curl-cql"):
+        from coworld.agents.curl import Curl
+
+        return Curl(config=config, action_size=action_size, device=device, cql=algo == "curl-cql")
+    raise ValueError(f"unknown algorithm {algo!r}")

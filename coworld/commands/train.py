@@ -1,0 +1,62 @@
+"""``coworld train``: CoWorld, offline DreamerV2, CURL or CURL+CQL on a target dataset."""
+
+from __future__ import annotations
+
+import click
+
+from coworld.training.train import ALGOS, MODEL_FREE
+
+
+@click.command()
+@click.option("--target", required=True, help="Offline target task (its dataset is the training data).")
+@click.option("--source", default=None, help="Online source task (CoWorld only), e.g. walker_walk.")
+@click.option(
+    "--dataset",
+    type=click.Path(dir_okay=False),
+    default=None,
+    help="Target dataset; default datasets/<target>-medium_replay.h5.",
+)
+@click.option("--algo", type=click.Choice(ALGOS), default="coworld", show_default=True)
+@click.option("--preset", default="paper", show_default=True, help="tiny (CPU minutes) or paper (Table 3, GPU).")
+@click.option(
+    "--logdir",
+    type=click.Path(file_okay=False),
+    default=None,
+    help="Run folder; default runs/<algo>-<source>-<target>-s<seed>. An existing one is resumed.",
+)
+@click.option("--seed", type=int, default=None, help="Seed (default: config seed, 0).")
+@click.option("--device", type=click.Choice(["auto", "cpu", "cuda"]), default=None, help="Default auto.")
+@click.option(
+    "--set",
+    "overrides",
+    multiple=True,
+    metavar="KEY=VALUE",
+    help="Config override, e.g. --set coworld.align=false (repeatable).",
+)
+@click.option("--progress/--no-progress", default=True, help="Progress bars.")
+def train(target, source, dataset, algo, preset, logdir, seed, device, overrides, progress) -> None:
+    """Train on a fixed target dataset (CoWorld also learns online in --source).
+
+    Rerunning the same command on the same --logdir resumes from the last checkpoint.
+    """
+    from coworld.training.train import check_job, run_job
+
+    if source is not None and algo != "coworld":
+        click.echo(f"note: --source is not used by {algo}: it learns from the target dataset alone", err=True)
+        source = None
+    job = check_job(
+        algo=algo,
+        source=source,
+        target=target,
+        dataset=dataset,
+        preset=preset,
+        logdir=logdir,
+        seed=seed,
+        device=device,
+        overrides=overrides,
+    )
+    kind = "offline on the dataset alone" if algo in MODEL_FREE or algo == "dreamerv2" else f"with source {source}"
+    click.echo(f"train {algo} on {job.dataset} ({target}, {kind}); run folder {job.logdir}")
+    summary = run_job(job, progress=progress)
+    last = summary.get("last_eval_return")
+    click.echo(f"done: {job.logdir}" + (f" (last evaluation return {last:.1f})" if last is not None else ""))

@@ -1,0 +1,78 @@
+"""Offline baselines on the target dataset alone: offline DreamerV2 and CURL / CURL+CQL.
+
+Offline DreamerV2 gets the same number of target updates as CoWorld's target agent
+(``coworld.iterations * coworld.target_updates``), evaluated and checkpointed once per CoWorld iteration's
+worth of updates, so the two are compared at equal cost.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+
+from coworld.agents.factory import make_agent
+from coworld.data import open_dataset
+from coworld.envs import task_spec
+from coworld.training.logger import Logger
+from coworld.training.offline import OfflineSchedule, OfflineTrainer
+from coworld.training.train import CHECKPOINT_KINDS, TrainJob
+
+
+def schedule_for(job: TrainJob) -> OfflineSchedule:
+    config = job.config
+    if job.algo == "dreamerv2":
+        per_iteration = config.coworld.target_updates
+        return OfflineSchedule(
+            updates=config.coworld.iterations * per_iteration,
+            log_every=max(1, min(config.train.log_every, per_iteration)),
+            eval_every=per_iteration * config.coworld.eval_every,
+            eval_episodes=config.train.eval_episodes,
+            checkpoint_every=per_iteration,
+        )
+    c = config.curl
+    return OfflineSchedule(
+        updates=c.updates,
+        log_every=c.log_every,
+        eval_every=c.eval_every,
+        eval_episodes=c.eval_episodes,
+        checkpoint_every=c.checkpoint_every,
+    )
+
+
+def train_offline(job: TrainJob, *, device: torch.device, resumed: bool, progress: bool = True) -> dict[str, Any]:
+    config = job.config
+    action_size = task_spec(job.target).action_size
+    agent = make_agent(job.algo, config=config, action_size=action_size, device=device)
+    dataset = open_dataset(job.dataset)
+    if job.algo == "dreamerv2":
+
+        def make_sampler(seed: int):
+            return iter(dataset.sampler(config.train.batch_size, config.train.seq_len, seed=seed))
+
+        discount = config.actor_critic.discount
+    else:
+        from coworld.agents.curl import make_sampler as curl_sampler
+
+        def make_sampler(seed: int):
+            return iter(curl_sampler(dataset, config, seed))
+
+        discount = None
+    with Logger(job.logdir) as logger:
+        trainer = OfflineTrainer(
+            agent=agent,
+            kind=CHECKPOINT_KINDS[job.algo],
+            task=job.target,
+            config=config,
+            schedule=schedule_for(job),
+            logdir=job.logdir,
+            logger=logger,
+            make_sampler=make_sampler,
+            discount=discount,
+            workers=config.train.envs,
+        )
+        if resumed:
+            trainer.restore()
+        result = trainer.run(progress=progress)
+    dataset.close()
+    return {"logdir": str(job.logdir), "updates": result.updates, "last_eval_return": result.last_eval_return}

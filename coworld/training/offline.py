@@ -1,0 +1,152 @@
+"""Offline training from a fixed dataset: offline DreamerV2 and the model-free baselines share this loop.
+
+The agent sees dataset batches only; the target environment is used for evaluation alone. The batch stream
+is cut into chunks at checkpoint boundaries and each chunk's sampler is seeded by (seed, updates done), so a
+run killed and resumed from its last checkpoint draws the same batches, with the same random state, as one
+that was never interrupted.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import tqdm
+
+from coworld.config import to_dict
+from coworld.training.checkpoint import CHECKPOINT_NAME, load_checkpoint, rng_state, save_checkpoint, set_rng_state
+from coworld.training.evaluate import evaluate
+from coworld.training.logger import Logger
+
+SamplerFactory = Callable[[int], Iterator[dict[str, np.ndarray]]]
+
+
+@dataclass(frozen=True)
+class OfflineSchedule:
+    """How long an offline run is and how often it logs, evaluates and checkpoints (in updates)."""
+
+    updates: int
+    log_every: int
+    eval_every: int
+    eval_episodes: int
+    checkpoint_every: int
+
+
+@dataclass
+class OfflineResult:
+    updates: int
+    last_eval_return: float | None
+
+
+class OfflineTrainer:
+    """Trains ``agent`` on batches from ``make_sampler(seed)`` and evaluates it in ``task``.
+
+    Args:
+        agent: has ``train(batch) -> metrics``, ``policy``, ``state_dict``, ``load_state_dict``.
+        kind: the checkpoint's kind (e.g. ``dreamerv2-offline``, ``curl``), checked on resume and by eval.
+        make_sampler: seed -> iterator of batches.
+        discount: discount of the value check in evaluations (None for agents without a critic estimate).
+    """
+
+    def __init__(
+        self,
+        *,
+        agent: Any,
+        kind: str,
+        task: str,
+        config: Any,
+        schedule: OfflineSchedule,
+        logdir: str | Path,
+        logger: Logger,
+        make_sampler: SamplerFactory,
+        discount: float | None = None,
+        workers: int = 1,
+    ) -> None:
+        self.agent, self.kind, self.task, self.config = agent, kind, task, config
+        self.schedule = schedule
+        self.logdir = Path(logdir)
+        self.logger = logger
+        self.make_sampler = make_sampler
+        self.discount = discount
+        self.workers = workers
+        self.updates = 0
+        self.last_eval: float | None = None
+
+    @property
+    def checkpoint_path(self) -> Path:
+        return self.logdir / CHECKPOINT_NAME
+
+    def restore(self) -> bool:
+        """Load the last checkpoint of this run folder, if any; True when resumed."""
+        if not self.checkpoint_path.exists():
+            return False
+        state = load_checkpoint(self.checkpoint_path, map_location=getattr(self.agent, "device", "cpu"))
+        if state.get("kind") != self.kind:
+            from coworld.errors import CheckpointError
+
+            raise CheckpointError(f"{self.checkpoint_path} is a {state.get('kind')!r} checkpoint, not {self.kind!r}")
+        self.agent.load_state_dict(state["agent"])
+        self.updates = int(state["updates"])
+        self.last_eval = state["last_eval"]
+        set_rng_state(state["rng"])
+        return True
+
+    def save(self) -> None:
+        save_checkpoint(
+            self.checkpoint_path,
+            {
+                "kind": self.kind,
+                "task": self.task,
+                "config": to_dict(self.config),
+                "agent": self.agent.state_dict(),
+                "updates": self.updates,
+                "last_eval": self.last_eval,
+                "rng": rng_state(),
+            },
+        )
+
+    def run(self, *, progress: bool = True) -> OfflineResult:
+        s = self.schedule
+        bar = tqdm.tqdm(total=s.updates, initial=self.updates, unit="update", disable=not progress, dynamic_ncols=True)
+        sampler = self.make_sampler(self.config.seed + self.updates)
+        start, start_updates = time.time(), self.updates
+        metrics: dict[str, float] = {}
+        try:
+            while self.updates < s.updates:
+                metrics = self.agent.train(next(sampler))
+                self.updates += 1
+                bar.update(1)
+                if self.updates % s.log_every == 0:
+                    metrics["perf/updates_per_s"] = (self.updates - start_updates) / max(time.time() - start, 1e-6)
+                    self.logger.log(metrics, self.updates)
+                if self.updates % s.eval_every == 0 or self.updates == s.updates:
+                    self.evaluate()
+                    bar.set_postfix(eval_return=f"{self.last_eval:.1f}")
+                if self.updates % s.checkpoint_every == 0 or self.updates == s.updates:
+                    self.save()
+                    sampler = self.make_sampler(self.config.seed + self.updates)
+        finally:
+            bar.close()
+        return OfflineResult(self.updates, self.last_eval)
+
+    def evaluate(self) -> None:
+        result, _ = evaluate(
+            self.agent,
+            self.task,
+            episodes=self.schedule.eval_episodes,
+            workers=min(self.workers, self.schedule.eval_episodes),
+            seed=self.config.seed + 10_000,
+            discount=self.discount,
+        )
+        self.last_eval = result.mean
+        metrics = {"eval/return": result.mean, "eval/return_std": result.std}
+        if result.success_rate is not None:
+            metrics["eval/success"] = result.success_rate
+        if result.value_estimate is not None and result.value_true is not None:
+            metrics["eval/value_estimate"] = float(np.mean(result.value_estimate))
+            metrics["eval/value_true"] = float(np.mean(result.value_true))
+        self.logger.log(metrics, self.updates)

@@ -1,0 +1,283 @@
+"""Online DreamerV2 training: the loop behind ``coworld collect`` and CoWorld's source agent.
+
+The loop steps ``config.train.envs`` environments, stores every finished episode both in the in-RAM replay
+the agent trains from and in an HDF5 dataset (the collected dataset itself, or ``<logdir>/replay.h5``), trains
+once every ``train_every`` environment steps after a random prefill, evaluates every ``eval_every`` steps,
+and checkpoints at episode boundaries. The dataset is the record of what was experienced: when a killed run is
+started again on the same folder, the agent comes back from its checkpoint, the replay is reloaded from the
+dataset, and the step count continues from the dataset's row count, so no episode is lost or counted twice
+(the episodes that were running at the kill are lost, as promised by the dataset writer).
+
+Vector environments follow Gymnasium's default NEXT_STEP autoreset: after a step that ends an episode, the
+next ``step`` of that environment ignores its action and returns the first observation of a new episode.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import tqdm
+
+from coworld import envs
+from coworld.config import Config, to_dict
+from coworld.data import DatasetWriter, open_dataset
+from coworld.training.checkpoint import CHECKPOINT_NAME, load_checkpoint, rng_state, save_checkpoint, set_rng_state
+from coworld.training.evaluate import evaluate
+from coworld.training.logger import Logger
+from coworld.training.replay import Replay
+
+CHECKPOINT_KIND = "dreamerv2-online"
+
+
+@dataclass
+class OnlineResult:
+    steps: int
+    updates: int
+    episodes: int
+    last_eval_return: float | None
+    stop_reason: str
+
+
+def dataset_episodes(path: str | Path) -> list[dict[str, np.ndarray]]:
+    """Every episode of a dataset in the step convention (for reloading a replay)."""
+    with open_dataset(path) as dataset:
+        return [dataset.episode(i) for i in range(dataset.num_episodes)]
+
+
+class OnlineTrainer:
+    """Trains a DreamerV2 agent online in ``task`` while recording all it experiences into ``writer``.
+
+    Args:
+        agent: a DreamerV2 agent (``policy``, ``train``, ``state_dict``, ``load_state_dict``).
+        task: registry name of the environment.
+        config: resolved config (``train`` section drives the schedule).
+        logdir: run folder for the checkpoint and logs.
+        writer: open dataset writer receiving every finished episode; its rows are the step count.
+        logger: where metrics go.
+        checkpoint_extra: callable returning more entries to save in the checkpoint (CoWorld's target agent).
+    """
+
+    def __init__(
+        self,
+        *,
+        agent: Any,
+        task: str,
+        config: Config,
+        logdir: str | Path,
+        writer: DatasetWriter,
+        logger: Logger,
+        checkpoint_extra: Callable[[], dict[str, Any]] | None = None,
+        metric_prefix: str = "",
+    ) -> None:
+        self.agent, self.task, self.config = agent, task, config
+        self.logdir = Path(logdir)
+        self.writer, self.logger = writer, logger
+        self.checkpoint_extra = checkpoint_extra
+        self.prefix = metric_prefix
+        self.spec = envs.task_spec(task)
+        self.replay = Replay(seed=config.seed)
+        self.steps = writer.num_steps
+        self.updates = 0
+        self.last_eval: float | None = None
+        self.last_eval_step = -1
+        self._venv: Any = None
+        self._obs: np.ndarray | None = None
+        self._is_last = np.zeros(config.train.envs, dtype=bool)
+        self._last_checkpoint_step = self.steps
+
+    # -- persistence -----------------------------------------------------------------------------------------------
+    @property
+    def checkpoint_path(self) -> Path:
+        return self.logdir / CHECKPOINT_NAME
+
+    def restore(self) -> dict[str, Any] | None:
+        """Reload agent, counters and RNG from the checkpoint and the replay from the dataset, if any."""
+        for episode in dataset_episodes(self.writer.path) if self.writer.num_episodes else []:
+            self.replay.add_episode(episode)
+        self.steps = self.writer.num_steps
+        if not self.checkpoint_path.exists():
+            return None
+        state = load_checkpoint(self.checkpoint_path, map_location=getattr(self.agent, "device", "cpu"))
+        self.agent.load_state_dict(state["agent"])
+        self.updates = int(state["updates"])
+        self.last_eval = state["last_eval"]
+        self.last_eval_step = int(state["last_eval_step"])
+        set_rng_state(state["rng"])
+        return state
+
+    def save(self) -> None:
+        state = {
+            "kind": CHECKPOINT_KIND,
+            "task": self.task,
+            "config": to_dict(self.config),
+            "agent": self.agent.state_dict(),
+            "steps": self.steps,
+            "updates": self.updates,
+            "last_eval": self.last_eval,
+            "last_eval_step": self.last_eval_step,
+            "rng": rng_state(),
+        }
+        if self.checkpoint_extra is not None:
+            state.update(self.checkpoint_extra())
+        save_checkpoint(self.checkpoint_path, state)
+
+    # -- the loop --------------------------------------------------------------------------------------------------
+    def run(
+        self,
+        *,
+        max_steps: int,
+        stop_return: float | None = None,
+        progress: bool = True,
+        should_pause: Callable[[OnlineTrainer], bool] | None = None,
+    ) -> OnlineResult:
+        """Step, record and train until ``max_steps`` rows exist or evaluation reaches ``stop_return``.
+
+        ``should_pause`` is asked after every step; returning True ends this call without closing the
+        environments, and the next call continues the running episodes (CoWorld interleaves its source and
+        target phases this way).
+        """
+        cfg = self.config.train
+        if self._venv is None:
+            self._venv = envs.make_vector(self.task, cfg.envs, seed=self.config.seed + self.steps)
+            self._obs = None
+        n = cfg.envs
+        if self._obs is None:
+            self._obs, _ = self._venv.reset(seed=[self.config.seed + self.steps + i for i in range(n)])
+            self._state = None
+            self._is_first = np.ones(n, dtype=bool)
+            self._running_success: list[list[float]] = [[] for _ in range(n)]
+            for i in range(n):
+                self._record(i, self._obs[i], np.zeros(self.spec.action_size, np.float32), 0.0, True, False, False)
+        bar = tqdm.tqdm(
+            total=max_steps, initial=min(self.steps, max_steps), unit="step", disable=not progress, dynamic_ncols=True
+        )
+        reason = "max steps"
+        start, start_updates = time.time(), self.updates
+        metrics: dict[str, float] = {}
+        last_log = self.steps
+        try:
+            while self.steps < max_steps:
+                mode = "random" if self.steps < cfg.prefill else "train"
+                action, self._state = self.agent.policy(self._obs, self._state, mode=mode, is_first=self._is_first)
+                if cfg.expl_noise and mode == "train":
+                    action = np.clip(action + cfg.expl_noise * np.random.randn(*action.shape), -1, 1)
+                action = action.astype(np.float32)
+                obs, reward, terminated, truncated, info = self._venv.step(action)
+                keep = min(n, max_steps - self.steps)
+                final = self.steps + keep >= max_steps  # cut the running episodes at exactly max_steps rows
+                ended = False
+                for i in range(n):
+                    if self._is_last[i]:  # NEXT_STEP autoreset: this step started a new episode
+                        self._record(i, obs[i], np.zeros_like(action[i]), 0.0, True, False, False)
+                        continue
+                    if i >= keep:
+                        continue
+                    success = float(info["success"][i]) if "success" in info else None
+                    last = bool(terminated[i] or truncated[i]) or final
+                    ended |= self._record(
+                        i, obs[i], action[i], float(reward[i]), False, last, bool(terminated[i]), success
+                    )
+                    self.steps += 1
+                    bar.update(1)
+                self._obs = obs
+                self._is_first = self._is_last.copy()
+                metrics.update(self._train_due())
+                if self.steps - last_log >= cfg.log_every and metrics:
+                    elapsed = max(time.time() - start, 1e-6)
+                    metrics[f"{self.prefix}perf/updates_per_s"] = (self.updates - start_updates) / elapsed
+                    self.logger.log(metrics, self.steps)
+                    metrics, last_log = {}, self.steps
+                if ended:
+                    if self.steps >= cfg.prefill and self.steps - self.last_eval_step >= cfg.eval_every:
+                        self._evaluate()
+                        bar.set_postfix(eval_return=f"{self.last_eval:.1f}", updates=self.updates)
+                        if stop_return is not None and self.last_eval >= stop_return:
+                            reason = f"evaluation return {self.last_eval:.1f} reached {stop_return:.1f}"
+                            break
+                    if self.steps - self._last_checkpoint_step >= cfg.checkpoint_every:
+                        self.save()
+                        self._last_checkpoint_step = self.steps
+                if should_pause is not None and should_pause(self):
+                    reason = "paused"
+                    break
+        finally:
+            bar.close()
+        if reason != "paused":
+            self.save()
+        return OnlineResult(self.steps, self.updates, self.writer.num_episodes, self.last_eval, reason)
+
+    def close(self) -> None:
+        if self._venv is not None:
+            self._venv.close()
+            self._venv = None
+
+    # -- pieces ----------------------------------------------------------------------------------------------------
+    def _record(
+        self,
+        i: int,
+        image: np.ndarray,
+        action: np.ndarray,
+        reward: float,
+        is_first: bool,
+        is_last: bool,
+        is_terminal: bool,
+        success: float | None = None,
+    ) -> bool:
+        """Add one step of env ``i``; write the episode when it ends. Returns True when it ended one."""
+        self._is_last[i] = is_last
+        if is_first:
+            self._running_success[i] = []
+        elif success is not None:
+            self._running_success[i].append(success)
+        step = {
+            "image": image,
+            "action": action,
+            "reward": np.float32(reward),
+            "is_first": is_first,
+            "is_last": is_last,
+            "is_terminal": is_terminal,
+        }
+        episode = self.replay.add_step(i, step)
+        if episode is None:
+            return False
+        infos = {"success": np.asarray(self._running_success[i], np.float32)} if self._running_success[i] else None
+        self.writer.add_episode(
+            observations=episode["image"],
+            actions=episode["action"][1:],
+            rewards=episode["reward"][1:],
+            terminated=bool(episode["is_terminal"][-1]),
+            infos=infos,
+        )
+        return True
+
+    def _train_due(self) -> dict[str, float]:
+        cfg = self.config.train
+        metrics: dict[str, float] = {}
+        if self.steps < cfg.prefill or not self.replay.episodes:
+            return metrics
+        while self.updates * cfg.train_every < self.steps - cfg.prefill + cfg.train_every:
+            batch = self.replay.sample(cfg.batch_size, cfg.seq_len)
+            metrics = {f"{self.prefix}{k}": v for k, v in self.agent.train(batch).items()}
+            self.updates += 1
+        return metrics
+
+    def _evaluate(self) -> None:
+        cfg = self.config.train
+        result, _ = evaluate(
+            self.agent,
+            self.task,
+            episodes=cfg.eval_episodes,
+            workers=min(cfg.envs, cfg.eval_episodes),
+            seed=self.config.seed + 10_000,
+        )
+        self.last_eval, self.last_eval_step = result.mean, self.steps
+        self.writer.update_metadata(last_eval_return=result.mean, last_eval_step=self.steps)
+        metrics = {f"{self.prefix}eval/return": result.mean, f"{self.prefix}eval/return_std": result.std}
+        if result.success_rate is not None:
+            metrics[f"{self.prefix}eval/success"] = result.success_rate
+        self.logger.log(metrics, self.steps)

@@ -1,0 +1,127 @@
+"""``coworld train``: check the inputs, prepare the run folder, dispatch to the algorithm.
+
+Everything a user can get wrong is checked before anything is written: the task names, the source and target
+action sizes, the dataset (present, readable, of the target task), the config keys. A run folder made by other
+settings is refused; one made by the same settings is resumed from its checkpoint.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from coworld import envs
+from coworld.config import Config, make_config
+from coworld.errors import CoworldError, DatasetError
+
+ALGOS = ("coworld", "dreamerv2", "curl", "curl-cql")
+MODEL_FREE = ("curl", "curl-cql")
+
+CHECKPOINT_KINDS = {
+    "coworld": "coworld",
+    "dreamerv2": "dreamerv2-offline",
+    "curl": "curl",
+    "curl-cql": "curl-cql",
+}
+
+
+def default_dataset(target: str, quality: str = "medium-replay") -> Path:
+    """``datasets/<target>-<quality>.h5`` with the quality's dash as an underscore (medium_replay)."""
+    return Path("datasets") / f"{target}-{quality.replace('-', '_')}.h5"
+
+
+def default_logdir(algo: str, source: str | None, target: str, seed: int) -> Path:
+    pair = f"{source}-{target}" if source and algo == "coworld" else target
+    return Path("runs") / f"{algo}-{pair}-s{seed}"
+
+
+@dataclass(frozen=True)
+class TrainJob:
+    """A checked request to train."""
+
+    algo: str
+    source: str | None
+    target: str
+    dataset: Path
+    logdir: Path
+    config: Config
+    preset: str
+
+    def info(self) -> dict[str, Any]:
+        return {
+            "algo": self.algo,
+            "source": self.source,
+            "target": self.target,
+            "dataset": str(self.dataset),
+            "preset": self.preset,
+        }
+
+
+def check_job(
+    *,
+    algo: str,
+    source: str | None,
+    target: str,
+    dataset: str | Path | None,
+    preset: str,
+    logdir: str | Path | None,
+    seed: int | None,
+    device: str | None,
+    overrides: Sequence[str],
+) -> TrainJob:
+    """Validate a training request; raises CoworldError with one line on any problem."""
+    if algo not in ALGOS:
+        raise CoworldError(f"unknown algorithm {algo!r}; choose one of: {', '.join(ALGOS)}")
+    target_spec = envs.task_spec(target)
+    if algo == "coworld":
+        if source is None:
+            raise CoworldError("coworld needs an online source domain: pass --source, e.g. --source walker_walk")
+        source_spec = envs.task_spec(source)
+        if source_spec.action_size != target_spec.action_size:
+            raise CoworldError(
+                f"source {source} has {source_spec.action_size} action dimensions but target {target} has"
+                f" {target_spec.action_size}; pick a source with the target's action space (see `coworld tasks`)"
+            )
+    extra = list(overrides)
+    if seed is not None:
+        extra.append(f"seed={seed}")
+    if device is not None:
+        extra.append(f"device={device}")
+    config = make_config(preset, extra)
+    path = Path(dataset) if dataset is not None else default_dataset(target)
+    check_dataset(path, target, target_spec.action_size)
+    run_dir = Path(logdir) if logdir is not None else default_logdir(algo, source, target, config.seed)
+    return TrainJob(algo, source if algo == "coworld" else None, target, path, run_dir, config, preset)
+
+
+def check_dataset(path: Path, task: str, action_size: int) -> None:
+    """The dataset exists, opens, and was recorded in ``task`` with its action size."""
+    from coworld.data import open_dataset
+
+    if not path.exists():
+        raise DatasetError(
+            f"no dataset at {path}; make one with `coworld collect --task {task} --out {path}` or pass --dataset"
+        )
+    with open_dataset(path) as data:
+        if data.task != task:
+            raise DatasetError(f"{path} was recorded in {data.task}, not the target {task}; pass a {task} dataset")
+        if data.action_size != action_size:
+            raise DatasetError(f"{path} has {data.action_size}-d actions but {task} takes {action_size}")
+
+
+def run_job(job: TrainJob, *, progress: bool = True) -> dict[str, Any]:
+    """Train as ``job`` says (resuming its run folder if it holds this run); returns a summary."""
+    from coworld.training.run import prepare_run_dir, resolve_device, seed_everything
+
+    device = resolve_device(job.config.device)
+    resumed = prepare_run_dir(job.logdir, job.config, job.info())
+    seed_everything(job.config.seed)
+    if job.algo == "coworld":
+        from coworld.agents.coworld import train_coworld
+
+        return train_coworld(job, device=device, resumed=resumed, progress=progress)
+    from coworld.training.baselines import train_offline
+
+    return train_offline(job, device=device, resumed=resumed, progress=progress)
