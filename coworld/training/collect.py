@@ -1,0 +1,165 @@
+"""``coworld collect --policy dreamerv2``: datasets made by training a DreamerV2 agent online.
+
+* ``medium-replay`` (the default, D4RL's sense): every transition the agent experiences while it learns, from
+  the random prefill on, streamed into the dataset as each episode ends, until the evaluation return reaches
+  the medium level (``stop_return``, by default a third of the task's reference return) or ``max_steps`` rows.
+* ``medium`` / ``expert``: the agent is trained the same way (its own experience goes to
+  ``<run>/replay.h5``), then ``episodes`` episodes of the trained policy are recorded into the dataset.
+
+The agent's run folder (checkpoint, logs, config) sits next to the dataset as ``<dataset>.run/``. Killed and
+rerun with ``--resume``, the agent comes back from its last checkpoint and the dataset continues from its last
+whole episode.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import shutil
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from coworld import envs
+from coworld.config import make_config
+from coworld.data import DatasetWriter
+from coworld.errors import CoworldError, DatasetError
+from coworld.training.logger import Logger
+from coworld.training.online import OnlineTrainer
+from coworld.training.run import prepare_run_dir, resolve_device, seed_everything
+
+TRAINED_QUALITIES = ("medium-replay", "medium", "expert")
+
+
+@dataclass
+class DreamerCollectSummary:
+    path: Path
+    episodes: int
+    steps: int
+    stop_reason: str
+    last_eval_return: float | None
+
+
+def dataset_fields(task: str) -> dict[str, Any]:
+    """The writer's env_config and reference for ``task``."""
+    from coworld.envs.registry import resolve_settings
+
+    spec = envs.task_spec(task)
+    env_config = {**dataclasses.asdict(spec), **dataclasses.asdict(resolve_settings(spec, {}))}
+    reference = {"random_return": spec.random_return, "reference_return": spec.reference_return}
+    return {"env_config": env_config, "reference": {k: v for k, v in reference.items() if v is not None}}
+
+
+def default_stop_return(task: str) -> float | None:
+    """The medium level: a third of the task's reference return (None where no reference is known)."""
+    reference = envs.task_spec(task).reference_return
+    return None if reference is None else reference / 3.0
+
+
+def collect_dreamerv2(
+    task: str,
+    out: str | Path,
+    *,
+    quality: str = "medium-replay",
+    preset: str = "paper",
+    overrides: Sequence[str] = (),
+    max_steps: int | None = None,
+    stop_return: float | None = None,
+    episodes: int = 10,
+    seed: int = 0,
+    device: str = "auto",
+    resume: bool = False,
+    force: bool = False,
+    compression: str = "gzip",
+    progress: bool = True,
+) -> DreamerCollectSummary:
+    """Train DreamerV2 online in ``task`` and write the dataset ``out`` (see the module docstring)."""
+    if quality not in TRAINED_QUALITIES:
+        raise CoworldError(f"the dreamerv2 collector makes {', '.join(TRAINED_QUALITIES)} datasets, not {quality!r}")
+    spec = envs.task_spec(task)
+    config = make_config(preset, [*overrides, f"seed={seed}", f"device={device}"])
+    out = Path(out)
+    run_dir = out.with_name(out.name.removesuffix(".h5") + ".run")
+    if out.exists() and not (resume or force):
+        raise DatasetError(f"{out} already exists; pass --resume to continue it or --force to overwrite it")
+    if force and run_dir.exists():
+        shutil.rmtree(run_dir)
+    if stop_return is None:
+        stop_return = default_stop_return(task)
+    limit = max_steps if max_steps is not None else config.train.steps
+    info = {"task": task, "quality": quality, "dataset": str(out), "max_steps": limit, "stop_return": stop_return}
+    resumed = prepare_run_dir(run_dir, config, info)
+    seed_everything(config.seed)
+    from coworld.agents.dreamerv2 import DreamerV2
+
+    agent = DreamerV2(config=config, action_size=spec.action_size, device=resolve_device(config.device))
+    collector = {"algorithm": "dreamerv2", "preset": preset, "seed": seed, "run": str(run_dir), "stop_return": stop_return}
+    fields = dataset_fields(task)
+    experience = out if quality == "medium-replay" else run_dir / "replay.h5"
+    writer = DatasetWriter(
+        experience,
+        task=task,
+        quality="medium-replay",
+        collector=collector,
+        action_size=spec.action_size,
+        resume=resumed or resume,
+        force=force and not resumed,
+        compression=compression,
+        **fields,
+    )
+    with Logger(run_dir) as logger, writer:
+        trainer = OnlineTrainer(agent=agent, task=task, config=config, logdir=run_dir, writer=writer, logger=logger)
+        trainer.restore()
+        try:
+            result = trainer.run(max_steps=limit, stop_return=stop_return, progress=progress)
+        finally:
+            trainer.close()
+        writer.update_metadata(steps=result.steps, updates=result.updates, stop_reason=result.stop_reason,
+                               last_eval_return=result.last_eval_return)
+        writer.close(complete=True)
+    if quality == "medium-replay":
+        return DreamerCollectSummary(out, result.episodes, result.steps, result.stop_reason, result.last_eval_return)
+    return _record_policy(agent, task, out, quality, episodes, seed, collector, result, fields, resume, compression)
+
+
+def _record_policy(
+    agent: Any,
+    task: str,
+    out: Path,
+    quality: str,
+    episodes: int,
+    seed: int,
+    collector: dict[str, Any],
+    result: Any,
+    fields: dict[str, Any],
+    resume: bool,
+    compression: str,
+) -> DreamerCollectSummary:
+    """Record ``episodes`` episodes of the trained policy (sampling its actions) into ``out``."""
+    spec = envs.task_spec(task)
+    collector = {**collector, "training_steps": result.steps, "last_eval_return": result.last_eval_return,
+                 "stop_reason": result.stop_reason}
+    with DatasetWriter(out, task=task, quality=quality, collector=collector, action_size=spec.action_size,
+                       resume=resume, compression=compression, **fields) as writer:
+        env = envs.make(task, seed=seed + 20_000 + writer.num_episodes)
+        while writer.num_episodes < episodes:
+            obs, _ = env.reset(seed=seed + 20_000 + writer.num_episodes)
+            frames, actions, rewards, successes = [obs], [], [], []
+            state, terminated, truncated = None, False, False
+            while not (terminated or truncated):
+                action, state = agent.policy(obs[None], state, mode="train")
+                obs, reward, terminated, truncated, info = env.step(action[0])
+                frames.append(obs)
+                actions.append(action[0])
+                rewards.append(reward)
+                if "success" in info:
+                    successes.append(float(info["success"]))
+            infos = {"success": np.asarray(successes, np.float32)} if successes else None
+            writer.add_episode(observations=np.stack(frames), actions=np.stack(actions),
+                               rewards=np.asarray(rewards, np.float32), terminated=terminated, infos=infos)
+        env.close()
+        writer.close(complete=True)
+        return DreamerCollectSummary(out, writer.num_episodes, writer.num_steps, result.stop_reason,
+                                     result.last_eval_return)
