@@ -1,0 +1,56 @@
+"""``coworld tasks`` (the task table and the paper's source -> target pairs) and ``coworld render`` (PNG frames)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from coworld.envs.registry import PAIRS, TASKS, task_spec
+from coworld.errors import ConfigError
+
+
+@click.command("tasks")
+def tasks() -> None:
+    """List every task and the source -> target pairs."""
+    header = ("task", "family", "actions", "episode", "repeat", "modification")
+    rows = [
+        (t.name, t.family, str(t.action_size), str(t.episode_length), str(t.action_repeat), t.modification or "-")
+        for t in TASKS.values()
+    ]
+    widths = [max(len(row[i]) for row in [header, *rows]) for i in range(len(header) - 1)]
+    for row in [header, *rows]:
+        click.echo("  ".join(cell.ljust(width) for cell, width in zip(row[:-1], widths, strict=True)) + "  " + row[-1])
+    click.echo("\nepisode: agent steps per episode; repeat: simulator steps per agent step.")
+    click.echo("\nsource -> target pairs:")
+    width = max(len(source) for source, _ in PAIRS)
+    for source, target in PAIRS:
+        click.echo(f"  {source.ljust(width)} -> {target}")
+
+
+@click.command("render")
+@click.option("--task", "task_name", required=True, help="Task name (see `coworld tasks`).")
+@click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False, path_type=Path), help="Folder.")
+@click.option("--frames", default=50, show_default=True, type=int, help="Frames to save (the first is the reset).")
+@click.option("--seed", default=0, show_default=True, type=int, help="Seed of the env and the random actions.")
+@click.option("--image-size", default=64, show_default=True, type=int, help="Frame side in pixels.")
+def render(task_name: str, out_dir: Path, frames: int, seed: int, image_size: int) -> None:
+    """Save frames of one random-policy episode as PNG files <task>_<step>.png."""
+    import imageio.v3 as iio
+
+    from coworld.envs import make
+
+    spec = task_spec(task_name)
+    if not 1 <= frames <= spec.episode_length + 1:
+        raise ConfigError(f"--frames must be between 1 and {spec.episode_length + 1} (one {task_name} episode)")
+    env = make(task_name, seed=seed, image_size=image_size)
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+        frame, _ = env.reset()
+        for step in range(frames):
+            if step:
+                frame, *_ = env.step(env.action_space.sample())
+            iio.imwrite(out_dir / f"{task_name}_{step:04d}.png", frame)
+    finally:
+        env.close()
+    click.echo(f"wrote {frames} frames of {task_name} to {out_dir}")

@@ -1,0 +1,236 @@
+"""DeepMind Control walker and cheetah tasks, plain and modified (slopes, disabled actuators), as pixel envs.
+
+Each task is built from ``dm_control.suite.<domain>.get_model_and_assets()`` with the XML edited in memory
+(nothing is written into site-packages) and reuses dm_control's own task classes (``walker.PlanarWalker`` with
+move speed 1, ``cheetah.Cheetah``) and ``control.Environment`` on a ``Physics`` built from the edited XML.
+
+Modifications:
+
+* **slope** (``*_uphill`` / ``*_downhill``, 15 degrees): the floor stays flat and gravity is rotated by the
+  slope angle about the y axis, which gives exactly the dynamics of a tilted floor (``9.81 sin 15 = 2.54`` m/s^2
+  along the floor, ``9.47`` into it). The tracking camera and the light are rotated by the same angle, so the
+  frames show a tilted floor with gravity pointing down the image. Rewards are dm_control's, measured in the
+  floor frame: speed along the slope, torso height above the slope, uprightness relative to the slope normal.
+* **disabled actuators** (``walker_nofoot``: right ankle; ``cheetah_nopaw``: front thigh, shin and foot):
+  ``gear="0"`` on their motors. The action size is unchanged; those action entries have no effect.
+
+Episodes: 1000 control steps (walker: 25 s at 40 Hz; cheetah: 10 s at 100 Hz), i.e. 500 agent steps at the
+default action repeat of 2. The reward of an agent step is the sum of the rewards of its repeated control
+steps, so an episode's return is at most 1000 whatever the action repeat. The tasks never terminate; they
+truncate at the episode length.
+"""
+
+from __future__ import annotations
+
+import math
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, Literal
+
+import gymnasium as gym
+import numpy as np
+
+from coworld.envs.render import FrameRenderer, ensure_gl_backend
+
+if TYPE_CHECKING:
+    from dm_control.mujoco import Physics
+
+    from coworld.envs.registry import EnvSettings, TaskSpec
+
+SLOPE_DEGREES = 15.0
+"""Incline of the paper's uphill / downhill tasks."""
+
+GRAVITY = 9.81
+"""MuJoCo's default gravity magnitude, m/s^2."""
+
+_SUB_STEPS = {"walker": 10, "cheetah": 1}
+"""Physics steps per control step, as in ``dm_control.suite`` (walker 0.025 s control step, cheetah 0.01 s)."""
+
+
+@dataclass(frozen=True)
+class DMCVariant:
+    """How one DMC task is built."""
+
+    domain: Literal["walker", "cheetah"]
+    slope_degrees: float = 0.0
+    """Incline the body moves along: positive is uphill (moving forward, +x, climbs), negative downhill."""
+    disabled_actuators: tuple[str, ...] = ()
+    """Motors whose gear is set to 0 (their actions do nothing)."""
+
+
+VARIANTS: dict[str, DMCVariant] = {
+    "walker_walk": DMCVariant("walker"),
+    "walker_downhill": DMCVariant("walker", slope_degrees=-SLOPE_DEGREES),
+    "walker_uphill": DMCVariant("walker", slope_degrees=SLOPE_DEGREES),
+    "walker_nofoot": DMCVariant("walker", disabled_actuators=("right_ankle",)),
+    "cheetah_run": DMCVariant("cheetah"),
+    "cheetah_downhill": DMCVariant("cheetah", slope_degrees=-SLOPE_DEGREES),
+    "cheetah_uphill": DMCVariant("cheetah", slope_degrees=SLOPE_DEGREES),
+    "cheetah_nopaw": DMCVariant("cheetah", disabled_actuators=("fthigh", "fshin", "ffoot")),
+}
+
+
+def model_xml(variant: DMCVariant) -> tuple[str, dict[str, bytes]]:
+    """The domain's XML with the variant's edits applied, and its assets (for ``Physics.from_xml_string``)."""
+    from dm_control.suite import cheetah, walker
+
+    xml, assets = (walker if variant.domain == "walker" else cheetah).get_model_and_assets()
+    text = xml.decode() if isinstance(xml, bytes) else xml
+    if not variant.slope_degrees and not variant.disabled_actuators:
+        return text, assets
+    root = ET.fromstring(text)
+    for name in variant.disabled_actuators:
+        motor = root.find(f"./actuator/motor[@name='{name}']")
+        if motor is None:
+            raise ValueError(f"{variant.domain} has no motor named {name!r}")
+        motor.set("gear", "0")
+    if variant.slope_degrees:
+        _tilt(root, text, assets, math.radians(variant.slope_degrees))
+    return ET.tostring(root, encoding="unicode"), assets
+
+
+def _tilt(root: ET.Element, text: str, assets: dict[str, bytes], angle: float) -> None:
+    """Rotate gravity by ``angle`` about +y (positive: uphill), and the tracking camera and lights with it.
+
+    The camera and lights are turned by the rotation that maps the real "up" (against the rotated gravity)
+    onto +z, seen from the simulator's frame; their placement is read from the compiled unedited model.
+    """
+    import mujoco
+
+    option = root.find("option")
+    if option is None:
+        option = ET.SubElement(root, "option")
+    option.set("gravity", _fmt((-GRAVITY * math.sin(angle), 0.0, -GRAVITY * math.cos(angle))))
+
+    model = mujoco.MjModel.from_xml_string(text, assets)
+    data = mujoco.MjData(model)
+    mujoco.mj_kinematics(model, data)
+    turn = np.array([math.cos(angle / 2), 0.0, math.sin(angle / 2), 0.0])  # rotation by `angle` about +y
+
+    camera = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_CAMERA, 0)  # the tracking camera the tasks render
+    element = root.find(f".//camera[@name='{camera}']")
+    assert element is not None, camera
+    body_quat = data.xquat[model.cam_bodyid[0]]
+    for attribute in ("quat", "euler", "axisangle", "xyaxes", "zaxis"):
+        element.attrib.pop(attribute, None)
+    element.set("pos", _fmt(_rotate_in_body(turn, body_quat, model.cam_pos[0])))
+    element.set("quat", _fmt(_turn_in_body(turn, body_quat, model.cam_quat[0])))
+
+    for light_id in range(model.nlight):
+        name = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_LIGHT, light_id)
+        element = root.find(f".//light[@name='{name}']")
+        assert element is not None, name
+        body_quat = data.xquat[model.light_bodyid[light_id]]
+        element.set("pos", _fmt(_rotate_in_body(turn, body_quat, model.light_pos[light_id])))
+        element.set("dir", _fmt(_rotate_in_body(turn, body_quat, model.light_dir[light_id])))
+
+
+def _rotate_in_body(turn: np.ndarray, body_quat: np.ndarray, vector: np.ndarray) -> np.ndarray:
+    """Apply the world rotation ``turn`` to a vector given in a body frame (orientation ``body_quat``)."""
+    import mujoco
+
+    local_turn = _turn_in_body(turn, body_quat, np.array([1.0, 0.0, 0.0, 0.0]))
+    out = np.zeros(3)
+    mujoco.mju_rotVecQuat(out, np.asarray(vector, float), local_turn)
+    return out
+
+
+def _turn_in_body(turn: np.ndarray, body_quat: np.ndarray, quat: np.ndarray) -> np.ndarray:
+    """Local orientation after turning by the world rotation ``turn``: ``body^-1 * turn * body * quat``."""
+    import mujoco
+
+    inverse, tmp, local, out = np.zeros(4), np.zeros(4), np.zeros(4), np.zeros(4)
+    mujoco.mju_negQuat(inverse, body_quat)
+    mujoco.mju_mulQuat(tmp, inverse, turn)
+    mujoco.mju_mulQuat(local, tmp, body_quat)
+    mujoco.mju_mulQuat(out, local, np.asarray(quat, float))
+    return out
+
+
+def _fmt(values: Any) -> str:
+    return " ".join(f"{float(v):.9g}" for v in values)
+
+
+class DMCEnv(gym.Env[np.ndarray, np.ndarray]):
+    """A DMC walker or cheetah task seen through its tracking camera (camera 0).
+
+    Observation: ``(S, S, 3)`` uint8 RGB frame after the step (``S`` = ``image_size``). Action: ``(6,)`` float32
+    in [-1, 1], held for ``action_repeat`` control steps. Reward: sum over those control steps. Never terminates;
+    truncates after ``episode_length`` agent steps.
+
+    Attributes:
+        physics: the dm_control ``Physics`` (read states such as ``physics.named.data.qpos['rootx']``).
+        task: the :class:`~coworld.envs.registry.TaskSpec`; ``settings``: the resolved overrides.
+    """
+
+    metadata = {"render_modes": ["rgb_array"]}
+    render_mode = "rgb_array"
+
+    def __init__(self, task: TaskSpec, settings: EnvSettings, *, seed: int, variant: DMCVariant) -> None:
+        ensure_gl_backend()
+        from dm_control.rl import control
+        from dm_control.suite import cheetah, walker
+
+        self.task = task
+        self.settings = settings
+        xml, assets = model_xml(variant)
+        if variant.domain == "walker":
+            physics: Physics = walker.Physics.from_xml_string(xml, assets)
+            dm_task: Any = walker.PlanarWalker(move_speed=1.0, random=seed)  # walker-walk's speed
+        else:
+            physics = cheetah.Physics.from_xml_string(xml, assets)
+            dm_task = cheetah.Cheetah(random=seed)
+        self._dm_task = dm_task
+        self._env = control.Environment(physics, dm_task, n_sub_steps=_SUB_STEPS[variant.domain])
+        size = settings.image_size
+        self.observation_space = gym.spaces.Box(0, 255, (size, size, 3), np.uint8)
+        self.action_space = gym.spaces.Box(-1.0, 1.0, (task.action_size,), np.float32)
+        self._renderer = FrameRenderer(physics.model.ptr, camera=0, size=size, quality=settings.render_quality)
+        self._steps = 0
+        self._needs_reset = True
+        self._frame = np.zeros(self.observation_space.shape, np.uint8)
+
+    @property
+    def physics(self) -> Physics:
+        return self._env.physics
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict]:
+        """Start an episode; ``seed`` re-seeds the initial-state randomisation (else it continues)."""
+        super().reset(seed=seed)
+        if seed is not None:
+            self._dm_task.random.seed(seed)
+        self._env.reset()
+        self._steps = 0
+        self._needs_reset = False
+        self._frame = self._renderer.render(self.physics.data.ptr)
+        return self._frame, {}
+
+    def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict]:
+        if self._needs_reset:
+            raise RuntimeError("call reset() before step() (at the start and after each truncated episode)")
+        action = np.asarray(action, np.float64)
+        if action.shape != self.action_space.shape:
+            raise ValueError(f"{self.task.name} takes actions of shape {self.action_space.shape}, got {action.shape}")
+        reward = 0.0
+        for _ in range(self.settings.action_repeat):
+            reward += self._env.step(action).reward
+        self._steps += 1
+        truncated = self._steps >= self.settings.episode_length
+        self._needs_reset = truncated
+        self._frame = self._renderer.render(self.physics.data.ptr)
+        return self._frame, reward, False, truncated, {}
+
+    def render(self) -> np.ndarray:
+        """The latest observation (``rgb_array``)."""
+        return self._frame.copy()
+
+    def close(self) -> None:
+        self._renderer.close()
+
+
+def make_dmc(task: TaskSpec, settings: EnvSettings, seed: int) -> DMCEnv:
+    """Build the DMC task ``task.name``."""
+    return DMCEnv(task, settings, seed=seed, variant=VARIANTS[task.name])
+
+
+__all__ = ["DMCEnv", "DMCVariant", "SLOPE_DEGREES", "VARIANTS", "make_dmc", "model_xml"]

@@ -1,0 +1,132 @@
+"""Meta-World v3 manipulation tasks as pixel envs.
+
+Each task is Meta-World's own environment class (``metaworld.env_dict.ALL_V3_ENVIRONMENTS``) with the object
+and goal positions drawn afresh at every reset from the env's seeded RNG (the usual setting of Dreamer-family
+pixel agents; Meta-World's benchmarks instead pick one of 50 pre-drawn positions). Frames come from the
+``corner2`` camera moved to ``(0.75, 0.075, 0.7)``, the close-up view used by Dreamer-family Meta-World wrappers,
+turned 180 degrees so the table is upright. Action: 4-d (end-effector xyz motion, gripper) in [-1, 1].
+
+Episodes last 500 simulator steps (Meta-World's ``max_path_length``), i.e. 500 agent steps at the default action
+repeat of 1; rewards are Meta-World's v2 reward (0 to 10 per step, so a return is at most 5000). ``info["success"]``
+is True when the task was solved at any simulator step of the agent step. Never terminates on success;
+truncates at the episode length.
+
+Rendering uses this env's own OpenGL context (see :mod:`coworld.envs.render`), so several envs can live in one
+process and closing one leaves the others rendering.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
+import gymnasium as gym
+import numpy as np
+
+from coworld.envs.render import FrameRenderer, ensure_gl_backend
+
+if TYPE_CHECKING:
+    from metaworld.sawyer_xyz_env import SawyerXYZEnv
+
+    from coworld.envs.registry import EnvSettings, TaskSpec
+
+CAMERA = "corner2"
+CAMERA_POS = (0.75, 0.075, 0.7)
+
+ENV_NAMES: dict[str, str] = {
+    "mw_window_close": "window-close-v3",
+    "mw_handle_press": "handle-press-v3",
+    "mw_drawer_close": "drawer-close-v3",
+    "mw_stick_push": "stick-push-v3",
+    "mw_door_close": "door-close-v3",
+    "mw_button_press_topdown": "button-press-topdown-v3",
+    "mw_button_press": "button-press-v3",
+    "mw_assembly": "assembly-v3",
+}
+"""Our task name -> Meta-World environment name."""
+
+
+class MetaWorldEnv(gym.Env[np.ndarray, np.ndarray]):
+    """A Meta-World task seen from the ``corner2`` camera.
+
+    Observation: ``(S, S, 3)`` uint8 RGB frame. Action: ``(4,)`` float32 in [-1, 1], held for ``action_repeat``
+    simulator steps. Reward: sum over those steps. ``info["success"]``: bool.
+
+    Attributes:
+        sim: the underlying Meta-World environment (MuJoCo ``model`` / ``data``, ``_get_pos_objects()``, ...).
+        task: the :class:`~coworld.envs.registry.TaskSpec`; ``settings``: the resolved overrides.
+    """
+
+    metadata = {"render_modes": ["rgb_array"]}
+    render_mode = "rgb_array"
+
+    def __init__(self, task: TaskSpec, settings: EnvSettings, *, seed: int) -> None:
+        ensure_gl_backend()
+        import mujoco
+        from metaworld.env_dict import ALL_V3_ENVIRONMENTS
+
+        self.task = task
+        self.settings = settings
+        sim: SawyerXYZEnv = ALL_V3_ENVIRONMENTS[ENV_NAMES[task.name]]()  # no gymnasium renderer: we draw frames
+        # Fresh positions at each reset from sim.np_random (what the goal-observable constructors set up before
+        # freezing them); these are Meta-World attributes without a public setter.
+        sim._set_task_called = True
+        sim._freeze_rand_vec = False
+        sim.seeded_rand_vec = True
+        sim.max_path_length = settings.episode_length * settings.action_repeat
+        sim.seed(seed)
+        self.sim = sim
+        camera = mujoco.mj_name2id(sim.model, mujoco.mjtObj.mjOBJ_CAMERA, CAMERA)
+        sim.model.cam_pos[camera] = CAMERA_POS
+        size = settings.image_size
+        self._renderer = FrameRenderer(
+            sim.model, camera=camera, size=size, quality=settings.render_quality, rotate_180=True
+        )
+        self.observation_space = gym.spaces.Box(0, 255, (size, size, 3), np.uint8)
+        self.action_space = gym.spaces.Box(-1.0, 1.0, (task.action_size,), np.float32)
+        self._steps = 0
+        self._needs_reset = True
+        self._frame = np.zeros(self.observation_space.shape, np.uint8)
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict]:
+        """Start an episode with new object/goal positions; ``seed`` re-seeds their RNG (else it continues)."""
+        import mujoco
+
+        super().reset(seed=seed)
+        if seed is not None:
+            self.sim.seed(seed)
+        self.sim.reset()
+        mujoco.mj_forward(self.sim.model, self.sim.data)  # reset moves goal sites after the last forward pass
+        self._steps = 0
+        self._needs_reset = False
+        self._frame = self._renderer.render(self.sim.data)
+        return self._frame, {"success": False}
+
+    def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict]:
+        if self._needs_reset:
+            raise RuntimeError("call reset() before step() (at the start and after each truncated episode)")
+        action = np.asarray(action, np.float32)
+        if action.shape != self.action_space.shape:
+            raise ValueError(f"{self.task.name} takes actions of shape {self.action_space.shape}, got {action.shape}")
+        reward, success = 0.0, False
+        for _ in range(self.settings.action_repeat):
+            _, step_reward, _, _, info = self.sim.step(action)
+            reward += float(step_reward)
+            success = success or bool(info["success"])
+        self._steps += 1
+        truncated = self._steps >= self.settings.episode_length
+        self._needs_reset = truncated
+        self._frame = self._renderer.render(self.sim.data)
+        return self._frame, reward, False, truncated, {"success": success}
+
+    def render(self) -> np.ndarray:
+        """The latest observation (``rgb_array``)."""
+        return self._frame.copy()
+
+    def close(self) -> None:
+        self._renderer.close()
+        self.sim.close()
+
+
+def make_metaworld(task: TaskSpec, settings: EnvSettings, seed: int) -> MetaWorldEnv:
+    """Build the Meta-World task ``task.name``."""
+    return MetaWorldEnv(task, settings, seed=seed)

@@ -1,0 +1,221 @@
+"""The task registry: every source and target task of the paper plus a toy pair, and :func:`make`.
+
+Every task is a Gymnasium env whose observation is the image itself: ``Box(0, 255, (S, S, 3), uint8)`` RGB,
+``S = 64`` by default. Actions: ``Box(-1, 1, (A,), float32)``. Episodes never terminate; they truncate after
+``episode_length`` agent steps.
+
+Returns in :class:`TaskSpec`:
+
+* ``reference_return`` -- the top of the score scale, used for "medium level" datasets and normalised scores.
+  DMC: 1000, the largest possible sum of per-control-step rewards in [0, 1] over the 1000 control steps of an
+  episode (an agent step's reward sums its repeated control steps, so the bound holds for any action repeat).
+  Meta-World: 5000, the bound of its reward (at most 10 per step over 500 steps; the paper's Table 2 reports
+  1397-3794 for its best agents). Toy: the mean return of the scripted
+  :meth:`~coworld.envs.toy.ToyReachEnv.expert_action` policy.
+* ``random_return`` -- mean return of uniformly random actions (how measured: comments at ``_DMC`` and ``_TOY``).
+  Meta-World's have a large spread (drawer-close 1334 +- 1788: random arms sometimes shut the drawer).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING, Any, Literal
+
+from coworld.envs.render import RenderQuality, check_render_quality
+from coworld.errors import ConfigError, UnknownTaskError
+
+if TYPE_CHECKING:
+    import gymnasium as gym
+
+Family = Literal["dmc", "metaworld", "toy"]
+
+
+@dataclass(frozen=True)
+class TaskSpec:
+    """What a task is; pure data, available without importing any simulator."""
+
+    name: str
+    family: Family
+    action_size: int
+    episode_length: int
+    """Agent steps per episode (after action repeat) at the default action repeat."""
+    action_repeat: int
+    """Simulator (control) steps per agent step by default."""
+    modification: str
+    """What differs from the plain task, for people; '' when nothing does."""
+    base: str
+    """What it is built from."""
+    reference_return: float | None
+    """Top of the score scale (see the module docstring)."""
+    random_return: float | None
+    """Mean return of uniform random actions (see the module docstring)."""
+
+
+@dataclass(frozen=True)
+class EnvSettings:
+    """The resolved overrides of one env (the keyword arguments accepted by :func:`make`)."""
+
+    image_size: int
+    """Side of the square RGB frames, in pixels."""
+    action_repeat: int
+    """Simulator (control) steps per agent step."""
+    episode_length: int
+    """Agent steps per episode. Default: the task's simulator-step budget divided by ``action_repeat``."""
+    render_quality: RenderQuality = "standard"
+    """MuJoCo tasks only: 'standard', 'fast' or 'full' (see :mod:`coworld.envs.render`)."""
+
+
+# Mean returns of uniform random actions: 10 episodes, episode i drawing its initial state with seed i and its
+# actions from numpy.random.default_rng(i).uniform(-1, 1) (tests/envs/test_returns.py re-measures some).
+_DMC = [
+    # name, modification, base, random_return
+    ("walker_walk", "", "dm_control walker-walk", 41.7),
+    ("walker_downhill", "15-degree downhill slope", "dm_control walker-walk", 76.4),
+    ("walker_uphill", "15-degree uphill slope", "dm_control walker-walk", 27.5),
+    ("walker_nofoot", "right foot cannot be controlled (right_ankle motor gear 0)", "dm_control walker-walk", 40.4),
+    ("cheetah_run", "", "dm_control cheetah-run", 5.6),
+    ("cheetah_downhill", "15-degree downhill slope", "dm_control cheetah-run", 43.2),
+    ("cheetah_uphill", "15-degree uphill slope", "dm_control cheetah-run", 0.4),
+    (
+        "cheetah_nopaw",
+        "front paw and two joints cannot be controlled (fthigh, fshin, ffoot motors gear 0)",
+        "dm_control cheetah-run",
+        11.5,
+    ),
+]
+
+_METAWORLD = [
+    # name, Meta-World name, random_return
+    ("mw_window_close", "window-close-v3", 328.9),
+    ("mw_handle_press", "handle-press-v3", 286.8),
+    ("mw_drawer_close", "drawer-close-v3", 1334.5),
+    ("mw_stick_push", "stick-push-v3", 9.8),
+    ("mw_door_close", "door-close-v3", 43.8),
+    ("mw_button_press_topdown", "button-press-topdown-v3", 178.4),
+    ("mw_button_press", "button-press-v3", 177.1),
+    ("mw_assembly", "assembly-v3", 211.9),
+]
+
+# Toy returns: 200 episodes, seeds 0-199, the env's own seeded action sampler (tests/envs/test_toy.py).
+_TOY = [
+    # name, modification, reference_return (scripted expert), random_return
+    ("toy_reach", "", 46.5, 9.6),
+    ("toy_reach_shifted", "other colours; constant drift towards -x", 45.6, 2.3),
+]
+
+
+def _build_tasks() -> dict[str, TaskSpec]:
+    tasks: list[TaskSpec] = []
+    for name, modification, base, random_return in _DMC:
+        tasks.append(TaskSpec(name, "dmc", 6, 500, 2, modification, base, 1000.0, random_return))
+    for name, mw_name, random_return in _METAWORLD:
+        tasks.append(TaskSpec(name, "metaworld", 4, 500, 1, "", f"Meta-World {mw_name}", 5000.0, random_return))
+    for name, modification, reference_return, random_return in _TOY:
+        base = "NumPy dot-to-goal reaching"
+        tasks.append(TaskSpec(name, "toy", 2, 50, 1, modification, base, reference_return, random_return))
+    return {task.name: task for task in tasks}
+
+
+TASKS: dict[str, TaskSpec] = _build_tasks()
+"""Every task by name."""
+
+PAIRS: tuple[tuple[str, str], ...] = (
+    ("walker_walk", "walker_downhill"),
+    ("walker_walk", "walker_uphill"),
+    ("walker_walk", "walker_nofoot"),
+    ("cheetah_run", "cheetah_downhill"),
+    ("cheetah_run", "cheetah_uphill"),
+    ("cheetah_run", "cheetah_nopaw"),
+    ("mw_window_close", "mw_door_close"),
+    ("mw_handle_press", "mw_button_press_topdown"),
+    ("mw_drawer_close", "mw_handle_press"),
+    ("mw_drawer_close", "mw_button_press"),
+    ("mw_stick_push", "mw_assembly"),
+    ("toy_reach", "toy_reach_shifted"),
+)
+"""(source, target) pairs: the paper's DMC and Meta-World transfer settings, and the toy pair."""
+
+
+def task_spec(name: str) -> TaskSpec:
+    """The :class:`TaskSpec` of ``name``; raises :class:`UnknownTaskError` listing the valid names."""
+    try:
+        return TASKS[name]
+    except (KeyError, TypeError):
+        raise UnknownTaskError(f"unknown task {name!r}; valid tasks: {', '.join(TASKS)}") from None
+
+
+_COMMON_OVERRIDES = ("image_size", "action_repeat", "episode_length")
+_OVERRIDES: dict[str, tuple[str, ...]] = {
+    "dmc": (*_COMMON_OVERRIDES, "render_quality"),
+    "metaworld": (*_COMMON_OVERRIDES, "render_quality"),
+    "toy": _COMMON_OVERRIDES,
+}
+
+
+def resolve_settings(task: TaskSpec, overrides: Mapping[str, Any]) -> EnvSettings:
+    """Validate ``overrides`` for ``task`` and fill in the defaults; raises :class:`ConfigError` on bad input."""
+    valid = _OVERRIDES[task.family]
+    for key in overrides:
+        if key not in valid:
+            raise ConfigError(f"unknown env override {key!r} for {task.name}; valid overrides: {', '.join(valid)}")
+    image_size = _positive_int(overrides.get("image_size", 64), "image_size")
+    action_repeat = _positive_int(overrides.get("action_repeat", task.action_repeat), "action_repeat")
+    budget = task.episode_length * task.action_repeat
+    default_length = budget // action_repeat
+    if default_length < 1:
+        raise ConfigError(f"action_repeat {action_repeat} exceeds {task.name}'s {budget} simulator steps per episode")
+    episode_length = _positive_int(overrides.get("episode_length", default_length), "episode_length")
+    settings = EnvSettings(image_size, action_repeat, episode_length)
+    if "render_quality" in overrides:
+        settings = replace(settings, render_quality=check_render_quality(overrides["render_quality"]))
+    return settings
+
+
+def _positive_int(value: Any, key: str) -> int:
+    if isinstance(value, bool):
+        raise ConfigError(f"env override {key} takes a positive integer, got {value!r}")
+    try:
+        number = int(value)
+    except (TypeError, ValueError):
+        raise ConfigError(f"env override {key} takes a positive integer, got {value!r}") from None
+    if number < 1 or number != float(value):
+        raise ConfigError(f"env override {key} takes a positive integer, got {value!r}")
+    return number
+
+
+def _builder(family: Family) -> Callable[[TaskSpec, EnvSettings, int], gym.Env]:
+    # Simulators are imported only when a task of their family is built.
+    if family == "dmc":
+        from coworld.envs.dmc import make_dmc
+
+        return make_dmc
+    if family == "metaworld":
+        from coworld.envs.meta_world import make_metaworld
+
+        return make_metaworld
+    from coworld.envs.toy import make_toy
+
+    return make_toy
+
+
+def make(name: str, seed: int = 0, **overrides: Any) -> gym.Env:
+    """Build task ``name`` as a pixel Gymnasium env.
+
+    Args:
+        name: a key of :data:`TASKS`.
+        seed: seeds the initial-state randomisation (the first ``reset()`` without a seed uses it) and the
+            action space's sampler. Same seed and actions give identical frames; ``reset(seed=s)`` restarts
+            that sequence.
+        **overrides: ``image_size`` (64), ``action_repeat`` (task's), ``episode_length`` (agent steps; default
+            keeps the task's simulator-step budget), and for MuJoCo tasks ``render_quality`` ('standard').
+
+    Returns:
+        The env; ``env.unwrapped.task`` is its :class:`TaskSpec`, ``env.unwrapped.settings`` its
+        :class:`EnvSettings`. Unknown names raise :class:`UnknownTaskError`, bad overrides :class:`ConfigError`.
+    """
+    task = task_spec(name)
+    settings = resolve_settings(task, overrides)
+    env = _builder(task.family)(task, settings, int(seed))
+    env.action_space.seed(int(seed))
+    return env

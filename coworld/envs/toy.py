@@ -1,0 +1,173 @@
+"""Toy reaching tasks in pure NumPy: a small CPU-only source -> target pair for testing CoWorld end to end.
+
+``toy_reach``: a dot moves in the square [-1, 1]^2 (x right, y up); the action is its velocity (2-d, in [-1, 1],
+times ``SPEED`` per step). A fixed goal disc is drawn on the frame; the dot starts at a random place at least
+``MIN_START_DISTANCE`` from the goal, so a policy has to read the dot's position from the pixels. Reward per step,
+dense in [0, 1]: 1 inside the goal disc, falling linearly to 0 at ``REWARD_MARGIN`` beyond its edge.
+
+``toy_reach_shifted``: the same task seen and felt differently -- other colours, and a constant drift of
+``DRIFT`` per step towards -x (a "slope"), so a policy has to push right to stay on the goal.
+
+Both: 50 steps per episode, action repeat 1, never terminate. Returns (mean over 200 episodes, seeds 0-199,
+re-measured by ``tests/envs/test_toy.py``): uniform random actions 9.6 on toy_reach and 2.3 on toy_reach_shifted
+(the drift carries an aimless dot away from the goal); :meth:`ToyReachEnv.expert_action` (full speed at the goal)
+46.5 and 45.6. No policy can reach 50: the dot starts at least 0.4 outside the goal disc.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+import gymnasium as gym
+import numpy as np
+
+if TYPE_CHECKING:
+    from coworld.envs.registry import EnvSettings, TaskSpec
+
+SPEED = 0.1
+"""Distance moved per step per unit of action."""
+GOAL = (0.45, 0.45)
+"""Goal centre."""
+GOAL_RADIUS = 0.2
+DOT_RADIUS = 0.12
+REWARD_MARGIN = 1.0
+"""Distance beyond the goal's edge where the reward reaches 0."""
+MIN_START_DISTANCE = 0.6
+"""Smallest distance between the dot's start and the goal centre."""
+DRIFT = 0.03
+"""Per-step drift towards -x in the shifted task."""
+LIMIT = 1.0 - DOT_RADIUS
+"""The dot's centre stays in [-LIMIT, LIMIT]^2, so it is always fully in view."""
+
+
+@dataclass(frozen=True)
+class ToyVariant:
+    """Colours (RGB, 0-255) and dynamics of a toy task."""
+
+    background: tuple[int, int, int]
+    goal_colour: tuple[int, int, int]
+    dot_colour: tuple[int, int, int]
+    drift: tuple[float, float] = (0.0, 0.0)
+
+
+VARIANTS: dict[str, ToyVariant] = {
+    "toy_reach": ToyVariant(background=(30, 30, 40), goal_colour=(40, 160, 70), dot_colour=(230, 60, 50)),
+    "toy_reach_shifted": ToyVariant(
+        background=(200, 190, 150), goal_colour=(60, 90, 200), dot_colour=(250, 240, 40), drift=(-DRIFT, 0.0)
+    ),
+}
+
+
+class ToyReachEnv(gym.Env[np.ndarray, np.ndarray]):
+    """Move a dot to a fixed goal, from pixels.
+
+    Observation: ``(S, S, 3)`` uint8 RGB frame (dot drawn with anti-aliased edges, so sub-pixel motion shows).
+    Action: ``(2,)`` float32 velocity in [-1, 1]. Reward in [0, 1] per step (summed over ``action_repeat``).
+
+    Attributes:
+        position: the dot's centre, ``(2,)`` float64 in [-LIMIT, LIMIT].
+        task: the :class:`~coworld.envs.registry.TaskSpec`; ``settings``: the resolved overrides.
+    """
+
+    metadata = {"render_modes": ["rgb_array"]}
+    render_mode = "rgb_array"
+
+    def __init__(self, task: TaskSpec, settings: EnvSettings, *, seed: int, variant: ToyVariant) -> None:
+        self.task = task
+        self.settings = settings
+        self._variant = variant
+        size = settings.image_size
+        self.observation_space = gym.spaces.Box(0, 255, (size, size, 3), np.uint8)
+        self.action_space = gym.spaces.Box(-1.0, 1.0, (2,), np.float32)
+        self._start_rng = np.random.default_rng(seed)
+        self._drift = np.array(variant.drift)
+        # World coordinates of pixel centres: column -> x, row -> y (row 0 is the top, y = +1).
+        centres = (np.arange(size) + 0.5) / size * 2.0 - 1.0
+        self._xs, self._ys = centres, -centres
+        self._pixel = 2.0 / size
+        self._background = np.empty((size, size, 3), np.float32)
+        self._background[:] = variant.background
+        self._blend(self._background, np.array(GOAL), GOAL_RADIUS, variant.goal_colour)
+        self.position = np.zeros(2)
+        self._steps = 0
+        self._needs_reset = True
+        self._frame = np.zeros(self.observation_space.shape, np.uint8)
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict]:
+        """Put the dot at a random start; ``seed`` re-seeds the start RNG (else it continues)."""
+        super().reset(seed=seed)
+        if seed is not None:
+            self._start_rng = np.random.default_rng(seed)
+        while True:
+            start = self._start_rng.uniform(-LIMIT, LIMIT, 2)
+            if np.linalg.norm(start - GOAL) >= MIN_START_DISTANCE:
+                break
+        self.position = start
+        self._steps = 0
+        self._needs_reset = False
+        self._frame = self._draw()
+        return self._frame, {}
+
+    def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict]:
+        if self._needs_reset:
+            raise RuntimeError("call reset() before step() (at the start and after each truncated episode)")
+        action = np.asarray(action, np.float64)
+        if action.shape != (2,):
+            raise ValueError(f"{self.task.name} takes actions of shape (2,), got {action.shape}")
+        velocity = np.clip(action, -1.0, 1.0) * SPEED + self._drift
+        reward = 0.0
+        for _ in range(self.settings.action_repeat):
+            self.position = np.clip(self.position + velocity, -LIMIT, LIMIT)
+            reward += self.reward(self.position)
+        self._steps += 1
+        truncated = self._steps >= self.settings.episode_length
+        self._needs_reset = truncated
+        self._frame = self._draw()
+        return self._frame, reward, False, truncated, {}
+
+    @staticmethod
+    def reward(position: np.ndarray) -> float:
+        """1 inside the goal disc, linear down to 0 at ``REWARD_MARGIN`` beyond its edge."""
+        outside = max(float(np.linalg.norm(position - GOAL)) - GOAL_RADIUS, 0.0)
+        return max(1.0 - outside / REWARD_MARGIN, 0.0)
+
+    def expert_action(self) -> np.ndarray:
+        """A scripted near-optimal action from the true state: full speed at the goal, cancelling the drift.
+
+        Returns ``(2,)`` float32 in [-1, 1]; used to measure the reference return and to script good data.
+        """
+        wanted = (np.asarray(GOAL) - self.position - self._drift) / SPEED
+        largest = np.abs(wanted).max()
+        if largest > 1.0:
+            wanted = wanted / largest
+        return wanted.astype(np.float32)
+
+    def render(self) -> np.ndarray:
+        """The latest observation (``rgb_array``)."""
+        return self._frame.copy()
+
+    def _draw(self) -> np.ndarray:
+        frame = self._background.copy()
+        self._blend(frame, self.position, DOT_RADIUS, self._variant.dot_colour)
+        return frame.astype(np.uint8)
+
+    def _blend(self, image: np.ndarray, centre: np.ndarray, radius: float, colour: tuple[int, int, int]) -> None:
+        """Paint an anti-aliased disc into ``image`` (``(S, S, 3)`` float32) in place, touching only its box."""
+        size = image.shape[0]
+        reach = radius + self._pixel
+        cols = np.nonzero(np.abs(self._xs - centre[0]) <= reach)[0]
+        rows = np.nonzero(np.abs(self._ys - centre[1]) <= reach)[0]
+        if cols.size == 0 or rows.size == 0:
+            return
+        r0, r1, c0, c1 = rows[0], min(rows[-1] + 1, size), cols[0], min(cols[-1] + 1, size)
+        dx = self._xs[c0:c1][None, :] - centre[0]
+        dy = self._ys[r0:r1][:, None] - centre[1]
+        coverage = np.clip((radius - np.sqrt(dx * dx + dy * dy)) / self._pixel + 0.5, 0.0, 1.0)[..., None]
+        patch = image[r0:r1, c0:c1]
+        patch += coverage * (np.asarray(colour, np.float32) - patch)
+
+
+def make_toy(task: TaskSpec, settings: EnvSettings, seed: int) -> ToyReachEnv:
+    """Build the toy task ``task.name``."""
+    return ToyReachEnv(task, settings, seed=seed, variant=VARIANTS[task.name])

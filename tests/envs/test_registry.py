@@ -1,0 +1,111 @@
+"""The task table, pairs, names and overrides (no simulator needed except where a test builds an env)."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from gymnasium.utils.env_checker import check_env
+
+from coworld.envs import PAIRS, TASKS, make, task_spec
+from coworld.errors import ConfigError, UnknownTaskError
+
+PAPER_PAIRS = {
+    ("walker_walk", "walker_downhill"),
+    ("walker_walk", "walker_uphill"),
+    ("walker_walk", "walker_nofoot"),
+    ("cheetah_run", "cheetah_downhill"),
+    ("cheetah_run", "cheetah_uphill"),
+    ("cheetah_run", "cheetah_nopaw"),
+    ("mw_window_close", "mw_door_close"),
+    ("mw_handle_press", "mw_button_press_topdown"),
+    ("mw_drawer_close", "mw_handle_press"),
+    ("mw_drawer_close", "mw_button_press"),
+    ("mw_stick_push", "mw_assembly"),
+}
+
+
+def test_pairs_are_the_papers_plus_a_toy_pair() -> None:
+    assert PAPER_PAIRS < set(PAIRS)
+    (toy,) = set(PAIRS) - PAPER_PAIRS
+    assert {TASKS[name].family for name in toy} == {"toy"}
+    for source, target in PAIRS:
+        a, b = TASKS[source], TASKS[target]
+        assert (a.family, a.action_size, a.action_repeat) == (b.family, b.action_size, b.action_repeat)
+
+
+def test_spec_fields_are_consistent() -> None:
+    for name, task in TASKS.items():
+        assert task.name == name
+        assert (task.modification == "") == (
+            task.name in {"walker_walk", "cheetah_run", "toy_reach"} or task.family == "metaworld"
+        )
+        if task.family == "dmc":
+            assert (task.episode_length * task.action_repeat, task.reference_return) == (1000, 1000.0)
+        if task.random_return is not None and task.reference_return is not None:
+            assert 0 <= task.random_return < task.reference_return
+
+
+def test_unknown_task_lists_the_valid_ones() -> None:
+    with pytest.raises(UnknownTaskError) as info:
+        task_spec("walker_run")
+    message = str(info.value)
+    assert "\n" not in message and message.startswith("unknown task 'walker_run'; valid tasks: walker_walk,")
+    assert all(name in message for name in TASKS)
+    with pytest.raises(UnknownTaskError):
+        make("walker_run")
+
+
+@pytest.mark.parametrize(
+    "name, overrides, match",
+    [
+        ("toy_reach", {"camera": 1}, "unknown env override 'camera' for toy_reach; valid overrides: image_size"),
+        ("toy_reach", {"render_quality": "fast"}, "unknown env override 'render_quality'"),
+        ("toy_reach", {"image_size": 0}, "image_size takes a positive integer"),
+        ("toy_reach", {"action_repeat": 2.5}, "action_repeat takes a positive integer"),
+        ("toy_reach", {"episode_length": "ten"}, "episode_length takes a positive integer"),
+        ("toy_reach", {"action_repeat": 51}, "exceeds toy_reach's 50 simulator steps"),
+        ("walker_walk", {"render_quality": "ultra"}, "render_quality must be one of standard, fast, full"),
+    ],
+)
+def test_bad_overrides_raise_one_line(name: str, overrides: dict, match: str) -> None:
+    with pytest.raises(ConfigError, match=match) as info:
+        make(name, **overrides)
+    assert "\n" not in str(info.value)
+
+
+def test_overrides_from_strings_and_defaults() -> None:
+    env = make("toy_reach", seed=0, image_size="32", action_repeat=2)
+    assert env.observation_space.shape == (32, 32, 3)
+    assert env.unwrapped.settings.episode_length == 25
+    assert make("toy_reach", episode_length=7, action_repeat=2).unwrapped.settings.episode_length == 7
+
+
+def test_importing_envs_loads_no_simulator() -> None:
+    code = (
+        "import sys, coworld.envs, coworld.commands.tasks\n"
+        "print(sorted(m for m in ('mujoco', 'dm_control', 'metaworld', 'torch') if m in sys.modules))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "[]"
+
+
+@pytest.mark.parametrize("name", ["toy_reach", "cheetah_nopaw", "mw_button_press"])
+def test_gymnasium_env_checker(name: str) -> None:
+    env = make(name, seed=0)
+    check_env(env, skip_render_check=True)
+    assert env.observation_space == gym.spaces.Box(0, 255, (64, 64, 3), np.uint8)
+    assert env.action_space == gym.spaces.Box(-1, 1, (TASKS[name].action_size,), np.float32)
+    env.close()
+
+
+@pytest.mark.parametrize("name", [name for name, task in TASKS.items() if task.family != "metaworld"])
+def test_every_dmc_and_toy_task_renders(name: str) -> None:
+    env = make(name, seed=0)
+    frame, _ = env.reset()
+    assert frame.shape == (64, 64, 3) and frame.dtype == np.uint8
+    assert frame.std() > 10 and len(np.unique(frame.reshape(-1, 3), axis=0)) > 20
+    env.close()
