@@ -88,12 +88,16 @@ class ActorCriticConfig:
     """Actor gradient: 'dynamics' (backprop through the model, DMC default) or 'reinforce'."""
     actor_min_std: float = 0.1
     """Lower bound of the actor's standard deviation."""
+    actor_dist: str = "trunc_normal"
+    """Actor distribution over [-1, 1] actions: 'trunc_normal' (DreamerV2's DMC choice) or 'tanh_normal'."""
     slow_target_every: int = 100
     """Updates between copies of the critic into its slow target."""
     slow_target_fraction: float = 1.0
     """Fraction of the critic mixed into the slow target at each copy."""
     eps: float = 1e-5
     """Adam epsilon."""
+    weight_decay: float = 1e-6
+    """AdamW weight decay of actor and critic (DreamerV2's wd)."""
     grad_clip: float = 100.0
     """Global gradient-norm clip."""
 
@@ -161,50 +165,54 @@ class CoWorldConfig:
 
 @dataclass(frozen=True)
 class CurlConfig:
-    """CURL (contrastive pixel SAC) and CURL+CQL, trained offline."""
+    """CURL (contrastive pixel SAC) and CURL+CQL, trained offline (the paper's model-free baselines).
+
+    Defaults are CURL's DMC settings (Laskin et al., 2020, appendix table; see ``coworld/agents/curl.py``) and
+    CQL's Gym-MuJoCo weight; the ``tiny`` preset shrinks the networks and batch for CPU tests.
+    """
 
     frame_stack: int = 3
-    """Stacked frames per observation."""
+    """Stacked frames per observation (CURL: 3)."""
     crop: int = 64
-    """Side of the random crop fed to the encoder (frames are padded by pad first)."""
+    """Side of the random crop fed to the encoder; 64 on 64 x 64 frames padded by pad = a random shift."""
     pad: int = 4
-    """Replicate padding before the random crop."""
+    """Replicate padding before the random crop (CURL crops 84 from a 100 render; our frames are 64)."""
     feature_dim: int = 50
-    """Encoder output size."""
+    """Encoder output size (CURL: 50)."""
     num_filters: int = 32
-    """Conv channels per layer."""
+    """Conv channels per layer (CURL: 32)."""
     num_layers: int = 4
-    """Conv layers of the encoder."""
+    """Conv layers of the encoder (CURL: 4, first with stride 2)."""
     hidden: int = 1024
-    """Units of the actor and critic MLPs."""
+    """Units of the actor and critic MLPs (CURL: 1024)."""
     batch_size: int = 512
-    """Transitions per batch."""
+    """Transitions per batch (CURL's table: 512 for cheetah, 128 for the other DMC tasks)."""
     updates: int = 500_000
     """Gradient updates of an offline run."""
     discount: float = 0.99
     """gamma."""
     actor_lr: float = 1e-3
-    """Actor learning rate."""
+    """Actor learning rate (CURL: 1e-3; 2e-4 for cheetah run)."""
     critic_lr: float = 1e-3
-    """Critic learning rate."""
+    """Critic (and encoder) learning rate (CURL: 1e-3; 2e-4 for cheetah run)."""
     encoder_lr: float = 1e-3
-    """Contrastive (CURL) learning rate."""
+    """Contrastive (CURL) learning rate of the encoder and W (CURL: 1e-3; 2e-4 for cheetah run)."""
     alpha_lr: float = 1e-4
-    """Temperature learning rate."""
+    """Temperature learning rate (CURL: 1e-4, Adam betas 0.5, 0.999)."""
     init_temperature: float = 0.1
-    """Initial SAC temperature."""
+    """Initial SAC temperature (CURL: 0.1); the target entropy is -|A|."""
     critic_tau: float = 0.01
-    """Polyak rate of the target critic."""
+    """Polyak rate of the target Q-heads (CURL: 0.01)."""
     encoder_tau: float = 0.05
-    """Polyak rate of the target (key) encoder."""
+    """Polyak rate of the target (key) encoder (CURL: 0.05)."""
     actor_update_every: int = 2
-    """Critic updates per actor update."""
+    """Critic updates per actor and temperature update (CURL: 2)."""
     target_update_every: int = 2
-    """Critic updates per target update."""
-    cql_weight: float = 1.0
-    """Weight of the CQL(H) penalty (CURL+CQL only)."""
+    """Critic updates per target update (CURL: 2)."""
+    cql_weight: float = 5.0
+    """Weight of the CQL(H) penalty, CURL+CQL only (CQL's min_q_weight for Gym-MuJoCo D4RL: 5)."""
     cql_samples: int = 10
-    """Random and policy actions per state in the CQL log-sum-exp."""
+    """Uniform actions, and policy actions at s and again at s', per state in the CQL log-sum-exp (CQL: 10)."""
     eval_every: int = 10_000
     """Updates between evaluations."""
     eval_episodes: int = 5

@@ -1,0 +1,299 @@
+"""The DreamerV2 agent: world model + actor-critic, their optimisers, the policy and one training update.
+
+Used online (the source agent, and the online DreamerV2 baseline) and offline (the target agent, trained on
+dataset batches). CoWorld's agent calls :meth:`DreamerV2.train_world_model` and
+:meth:`DreamerV2.train_actor_critic` separately to add its own loss terms through their hooks.
+
+Batches are dicts of NumPy arrays (or torch tensors) in the replay convention, see
+:mod:`coworld.models.world_model`.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Callable, Mapping
+from typing import Any, Literal
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from coworld.config import Config
+from coworld.errors import ConfigError
+from coworld.models.actor_critic import ActorCritic, ValueRegulariser, flatten_states
+from coworld.models.networks import frozen_parameters
+from coworld.models.rssm import State
+from coworld.models.world_model import WorldModel
+
+__all__ = ["DreamerV2", "ExtraWorldModelLoss", "PolicyState", "resolve_device", "resolve_precision"]
+
+PolicyState = tuple[State, Tensor]
+"""What :meth:`DreamerV2.policy` carries between steps: the posterior (batch ``(N,)``) and the last action
+``(N, A)``."""
+
+ExtraWorldModelLoss = Callable[[dict[str, Tensor], dict[str, Any]], dict[str, Tensor]]
+"""``(batch, aux) -> {name: weighted scalar loss}``: extra world-model terms (e.g. CoWorld's Eq. 3 alignment).
+``aux`` is :meth:`WorldModel.loss`'s aux dict; each returned term is added to the loss and logged as
+``wm/<name>``."""
+
+_OPTIM_KEYS = ("wm_opt", "actor_opt", "critic_opt")
+
+
+def resolve_device(name: str | torch.device) -> torch.device:
+    """'auto' -> CUDA when available, else CPU; 'cpu' / 'cuda' / 'cuda:1' as given (CUDA must be available)."""
+    if isinstance(name, torch.device):
+        device = name
+    elif name == "auto":
+        device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    else:
+        try:
+            device = torch.device(name)
+        except RuntimeError:
+            raise ConfigError(f"unknown device {name!r}; use 'auto', 'cpu' or 'cuda'") from None
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ConfigError("device 'cuda' requested but torch sees no CUDA GPU; set device=cpu (or auto)")
+    return device
+
+
+def resolve_precision(precision: str, device: torch.device) -> torch.dtype | None:
+    """The autocast dtype: 'auto' -> bf16 on CUDA and None (fp32) on CPU; 'bf16' -> bf16; 'fp32' -> None."""
+    if precision == "auto":
+        return torch.bfloat16 if device.type == "cuda" else None
+    if precision == "bf16":
+        return torch.bfloat16
+    if precision == "fp32":
+        return None
+    raise ConfigError(f"unknown precision {precision!r}; choose one of: auto, bf16, fp32")
+
+
+class DreamerV2:
+    """DreamerV2 (paper Sec. 3.2.1): world-model learning plus actor-critic learning in imagination.
+
+    ``device`` None uses ``config.device``; ``config.precision`` picks autocast; ``config.compile`` compiles the
+    networks in place with ``torch.compile`` (CUDA only; ignored on CPU).
+    """
+
+    def __init__(
+        self,
+        *,
+        config: Config,
+        action_size: int,
+        image_shape: tuple[int, int, int] = (64, 64, 3),
+        device: torch.device | str | None = None,
+    ) -> None:
+        self.config = config
+        self.action_size = action_size
+        self.image_shape = tuple(image_shape)
+        self.device = resolve_device(config.device if device is None else device)
+        self.autocast_dtype = resolve_precision(config.precision, self.device)
+        self.world_model = WorldModel(config=config.world_model, action_size=action_size, image_shape=image_shape)
+        self.actor_critic = ActorCritic(
+            config=config.actor_critic, feat_size=self.world_model.feat_size, action_size=action_size
+        )
+        self.world_model.to(self.device)
+        self.actor_critic.to(self.device)
+        wm, ac = config.world_model, config.actor_critic
+        self.wm_opt = torch.optim.AdamW(
+            self.world_model.parameters(), lr=wm.lr, eps=wm.eps, weight_decay=wm.weight_decay
+        )
+        self.actor_opt = torch.optim.AdamW(
+            self.actor_critic.actor.parameters(), lr=ac.actor_lr, eps=ac.eps, weight_decay=ac.weight_decay
+        )
+        self.critic_opt = torch.optim.AdamW(
+            self.actor_critic.critic.parameters(), lr=ac.critic_lr, eps=ac.eps, weight_decay=ac.weight_decay
+        )
+        self.updates = 0
+        """Completed calls of :meth:`train`."""
+        self.compiled = bool(config.compile and self.device.type == "cuda")
+        if self.compiled:
+            self._compile()
+
+    # ------------------------------------------------------------------------------------------------ acting
+
+    @torch.no_grad()
+    def policy(
+        self,
+        obs: np.ndarray,
+        state: PolicyState | None = None,
+        mode: Literal["train", "eval", "random"] = "train",
+        *,
+        is_first: np.ndarray | None = None,
+    ) -> tuple[np.ndarray, PolicyState | None]:
+        """Actions for a batch of observations.
+
+        ``obs``: uint8 images ``(N, H, W, C)``. ``state``: None at the start of every episode, else what the
+        previous call returned. ``is_first (N,)`` resets the latent and previous action of single rows (for
+        vectorised envs). ``mode``: 'train' samples the actor (plus ``train.expl_noise``), 'eval' takes its
+        mode, 'random' draws uniform actions in ``[-1, 1]`` without running the model and returns state None.
+        Returns float32 actions ``(N, A)`` and the new state.
+        """
+        n = obs.shape[0]
+        if mode == "random":
+            return (torch.rand(n, self.action_size) * 2.0 - 1.0).numpy(), None
+        if mode not in ("train", "eval"):
+            raise ValueError(f"unknown policy mode {mode!r}; use 'train', 'eval' or 'random'")
+        if state is None:
+            latent, action = self.world_model.rssm.initial(n, self.device), self._zero_action(n)
+            first = torch.ones(n, dtype=torch.bool, device=self.device)
+        else:
+            latent, action = state
+            first = torch.zeros(n, dtype=torch.bool, device=self.device)
+        if is_first is not None:
+            first = first | torch.as_tensor(np.asarray(is_first, dtype=bool), device=self.device)
+        image = torch.as_tensor(obs, device=self.device)
+        with self._autocast():
+            embed = self.world_model.encode(image)
+            latent, _ = self.world_model.rssm.obs_step(latent, action, embed, first)
+            dist = self.actor_critic.actor(self.world_model.features(latent))
+            action = dist.mode if mode == "eval" else dist.sample()
+        action = action.float()
+        noise = self.config.train.expl_noise
+        if mode == "train" and noise > 0.0:
+            action = (action + noise * torch.randn_like(action)).clamp(-1.0, 1.0)
+        return action.cpu().numpy(), (latent, action)
+
+    @torch.no_grad()
+    def value(self, state: PolicyState) -> np.ndarray:
+        """The critic's estimate ``(N,)`` for the latent states the policy has just reached (``state`` from
+        :meth:`policy`): the discounted return it expects from there on (Figure 4(b)'s value check)."""
+        latent, _ = state
+        with self._autocast():
+            value = self.actor_critic.critic_value(self.world_model.features(latent))
+        return value.float().cpu().numpy()
+
+    # ---------------------------------------------------------------------------------------------- training
+
+    def to_batch(self, batch: Mapping[str, np.ndarray | Tensor]) -> dict[str, Tensor]:
+        """NumPy batch -> torch tensors on the device; images stay uint8, actions and rewards become float32."""
+        out = {}
+        for key, value in batch.items():
+            tensor = torch.as_tensor(value)
+            if tensor.is_floating_point():
+                tensor = tensor.float()
+            out[key] = tensor.to(self.device, non_blocking=True)
+        return out
+
+    def train(self, batch: Mapping[str, np.ndarray | Tensor]) -> dict[str, float]:
+        """One world-model update and one actor-critic update in imagination; returns namespaced metrics."""
+        batch_t = self.to_batch(batch)
+        metrics, post = self.train_world_model(batch_t)
+        metrics.update(self.train_actor_critic(post, is_terminal=batch_t["is_terminal"]))
+        self.updates += 1
+        return metrics
+
+    def train_world_model(
+        self, batch: Mapping[str, np.ndarray | Tensor], extra_loss: ExtraWorldModelLoss | None = None
+    ) -> tuple[dict[str, float], State]:
+        """One world-model gradient step. Returns ``(metrics, post)`` with the detached posterior (batch
+        ``(B, T)``) to start imagination from. ``extra_loss`` adds weighted terms (see
+        :data:`ExtraWorldModelLoss`)."""
+        batch_t = self.to_batch(batch)
+        with self._autocast():
+            terms, aux = self.world_model.loss(batch_t)
+            loss = aux["loss"]
+            extras = extra_loss(batch_t, aux) if extra_loss is not None else {}
+            for term in extras.values():
+                loss = loss + term
+        self.wm_opt.zero_grad(set_to_none=True)
+        loss.backward()
+        grad_norm = torch.nn.utils.clip_grad_norm_(self.world_model.parameters(), self.config.world_model.grad_clip)
+        self.wm_opt.step()
+        post, prior = aux["post"], aux["prior"]
+        metrics = {f"wm/{name}": term.detach().mean() for name, term in terms.items()}
+        metrics.update({f"wm/{name}": term.detach() for name, term in extras.items()})
+        metrics["wm/kl_loss"] = aux["kl_loss"].detach()
+        metrics["wm/loss"] = loss.detach()
+        metrics["wm/grad_norm"] = grad_norm
+        metrics["wm/post_entropy"] = self.world_model.rssm.dist(post).entropy().detach().mean()
+        metrics["wm/prior_entropy"] = self.world_model.rssm.dist(prior).entropy().detach().mean()
+        metrics["wm/reward_pred"] = self.world_model.reward_head(aux["feat"].detach()).mean.detach().mean()
+        return _to_floats(metrics), {key: value.detach() for key, value in post.items()}
+
+    def train_actor_critic(
+        self,
+        post: State,
+        value_regulariser: ValueRegulariser | None = None,
+        *,
+        is_terminal: Tensor | np.ndarray | None = None,
+    ) -> dict[str, float]:
+        """One actor and one critic step on trajectories imagined from every posterior state in ``post``.
+
+        ``post``: states with batch ``(B, T)`` (from :meth:`train_world_model`). ``value_regulariser``: extra
+        critic loss, see :meth:`ActorCritic.losses`; give it parameters that need no gradient (or wrap its
+        network in :func:`coworld.models.networks.frozen_parameters`). ``is_terminal (B, T)``: true
+        continuation of the start states. The slow critic is refreshed first, per ``slow_target_every``.
+        """
+        ac = self.actor_critic
+        ac.update_slow_target()
+        start = flatten_states(post)
+        terminal = None if is_terminal is None else torch.as_tensor(is_terminal, device=self.device).reshape(-1)
+        with frozen_parameters(self.world_model), self._autocast():
+            traj = ac.imagine(self.world_model, start, is_terminal=terminal)
+            terms, metrics = ac.losses(self.world_model, traj, value_regulariser)
+        self.actor_opt.zero_grad(set_to_none=True)
+        self.critic_opt.zero_grad(set_to_none=True)
+        (terms["actor"] + terms["critic"]).backward()
+        clip = self.config.actor_critic.grad_clip
+        metrics["actor/grad_norm"] = torch.nn.utils.clip_grad_norm_(ac.actor.parameters(), clip)
+        metrics["critic/grad_norm"] = torch.nn.utils.clip_grad_norm_(ac.critic.parameters(), clip)
+        self.actor_opt.step()
+        self.critic_opt.step()
+        metrics["actor/loss"] = terms["actor"].detach()
+        metrics["critic/loss"] = terms["critic"].detach()
+        return _to_floats(metrics)
+
+    # ---------------------------------------------------------------------------------------- checkpointing
+
+    def state_dict(self) -> dict[str, Any]:
+        """Networks, optimisers and the update counter: tensors, numbers, strings, lists and dicts only."""
+        return {
+            "world_model": self.world_model.state_dict(),
+            "actor_critic": self.actor_critic.state_dict(),
+            **{key: getattr(self, key).state_dict() for key in _OPTIM_KEYS},
+            "updates": self.updates,
+        }
+
+    def load_state_dict(self, state: Mapping[str, Any]) -> None:
+        """Restore what :meth:`state_dict` returned (strict: every network key must match)."""
+        self.world_model.load_state_dict(state["world_model"])
+        self.actor_critic.load_state_dict(state["actor_critic"])
+        for key in _OPTIM_KEYS:
+            getattr(self, key).load_state_dict(state[key])
+        self.updates = int(state["updates"])
+
+    # -------------------------------------------------------------------------------------------- internals
+
+    def _zero_action(self, n: int) -> Tensor:
+        return torch.zeros(n, self.action_size, device=self.device)
+
+    def _autocast(self) -> contextlib.AbstractContextManager[Any]:
+        if self.autocast_dtype is None:
+            return contextlib.nullcontext()
+        return torch.autocast(device_type=self.device.type, dtype=self.autocast_dtype)
+
+    def _compile(self) -> None:
+        """Compile the per-step networks in place (state-dict keys unchanged)."""
+        wm, ac = self.world_model, self.actor_critic
+        for module in (
+            wm.encoder,
+            wm.decoder,
+            wm.reward_head,
+            wm.discount_head,
+            wm.rssm.img_in,
+            wm.rssm.cell,
+            wm.rssm.img_out,
+            wm.rssm.obs_out,
+            ac.actor,
+            ac.critic,
+            ac.slow_critic,
+        ):
+            if module is not None:
+                module.compile()
+
+
+def _to_floats(metrics: Mapping[str, Tensor]) -> dict[str, float]:
+    """Scalar tensors -> Python floats with a single device-to-host copy."""
+    if not metrics:
+        return {}
+    values = torch.stack([value.detach().float().reshape(()) for value in metrics.values()]).cpu().tolist()
+    return dict(zip(metrics.keys(), values, strict=True))

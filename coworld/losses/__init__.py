@@ -1,0 +1,1 @@
+"""Loss functions: pure, returning unreduced named terms."""

@@ -1,0 +1,244 @@
+"""DreamerV2's actor and critic, trained on trajectories imagined by the world model.
+
+Imagination starts from ``N`` posterior states (the flattened ``B * T`` states of a world-model batch) and rolls
+the prior forward ``H`` steps with actions from the actor. A trajectory ``traj`` is a dict of tensors with
+leading ``(H + 1, N)``; index 0 is the start state (its ``action`` entry is zeros)::
+
+    Actions:        0   [a1]  [a2]   a3          a_{t+1} is taken in state t and leads to state t+1
+    States:     [z0] -> [z1] -> z2 -> z3
+    Targets:     R0    [R1]  [R2]                lambda-returns, bootstrapped from the slow critic at H
+    Weights:    [ 1]   [w1]   w2    w3           cumulative predicted discount of reaching the state
+
+The critic regresses ``v(z_t)`` to ``sg(R_t)`` for ``t < H``; the actor maximises ``R_{t+1}`` for ``t < H-1``
+(backpropagating through the dynamics) or uses REINFORCE with the slow critic as baseline, plus an entropy bonus.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+from collections.abc import Callable
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from coworld.config import ActorCriticConfig
+from coworld.errors import ConfigError
+from coworld.losses.dreamer import actor_loss, critic_loss, lambda_return
+from coworld.models.distributions import TanhNormal, TruncatedNormal, UnitGaussian
+from coworld.models.networks import MLP
+from coworld.models.rssm import State, stack_states
+from coworld.models.world_model import WorldModel
+
+__all__ = ["Actor", "ActorCritic", "Critic", "ValueRegulariser", "flatten_states"]
+
+ValueRegulariser = Callable[[Tensor, Tensor], Tensor]
+"""``(feat (H, N, F), value (H, N)) -> (H, N)``: an extra per-state critic loss (CoWorld's Eq. 6 term)."""
+
+ACTOR_DISTS = ("trunc_normal", "tanh_normal")
+ACTOR_GRADS = ("dynamics", "reinforce")
+
+
+def flatten_states(state: State) -> State:
+    """Posterior states with batch ``(B, T)`` -> detached start states with batch ``(N,) = (B * T,)``."""
+    deter = state["deter"]
+    n = deter.shape[:-1].numel()
+    return {key: value.detach().reshape(n, *value.shape[deter.ndim - 1 :]) for key, value in state.items()}
+
+
+class Actor(nn.Module):
+    """MLP policy over continuous actions in ``[-1, 1]``: features ``(..., F)`` -> distribution over ``(..., A)``.
+
+    ``trunc_normal`` (DreamerV2's DMC choice): ``loc = tanh(m)``, ``scale = 2 * sigmoid(s / 2) + min_std``,
+    truncated to ``[-1, 1]``. ``tanh_normal``: ``Normal(m, softplus(s + softplus^-1(1)) + min_std)`` squashed
+    by ``tanh``.
+    """
+
+    def __init__(self, *, feat_size: int, action_size: int, units: int, layers: int, dist: str, min_std: float):
+        super().__init__()
+        if dist not in ACTOR_DISTS:
+            raise ConfigError(f"unknown actor_critic.actor_dist {dist!r}; choose one of: {', '.join(ACTOR_DISTS)}")
+        self.dist = dist
+        self.min_std = min_std
+        self.mlp = MLP(in_size=feat_size, out_size=2 * action_size, units=units, layers=layers)
+
+    def forward(self, feat: Tensor) -> TruncatedNormal | TanhNormal:
+        """``(..., F)`` -> action distribution, event ``(A,)``."""
+        mean, std = self.mlp(feat).float().chunk(2, dim=-1)
+        if self.dist == "trunc_normal":
+            return TruncatedNormal(torch.tanh(mean), 2.0 * torch.sigmoid(std / 2.0) + self.min_std, -1.0, 1.0)
+        return TanhNormal(mean, F.softplus(std + math.log(math.e - 1.0)) + self.min_std)
+
+
+class Critic(nn.Module):
+    """MLP value function: features ``(..., F)`` -> :class:`UnitGaussian` with mean ``(...)``."""
+
+    def __init__(self, *, feat_size: int, units: int, layers: int) -> None:
+        super().__init__()
+        self.mlp = MLP(in_size=feat_size, out_size=1, units=units, layers=layers)
+
+    def forward(self, feat: Tensor) -> UnitGaussian:
+        """``(..., F)`` -> value distribution (mean ``(...)``, float32)."""
+        return UnitGaussian(self.mlp(feat).squeeze(-1).float())
+
+
+class ActorCritic(nn.Module):
+    """Actor, critic and the critic's slow target, with DreamerV2's imagination losses."""
+
+    updates: Tensor
+
+    def __init__(self, *, config: ActorCriticConfig, feat_size: int, action_size: int) -> None:
+        super().__init__()
+        if config.actor_grad not in ACTOR_GRADS:
+            raise ConfigError(
+                f"unknown actor_critic.actor_grad {config.actor_grad!r}; choose one of: {', '.join(ACTOR_GRADS)}"
+            )
+        self.config = config
+        self.action_size = action_size
+        self.actor = Actor(
+            feat_size=feat_size,
+            action_size=action_size,
+            units=config.units,
+            layers=config.layers,
+            dist=config.actor_dist,
+            min_std=config.actor_min_std,
+        )
+        self.critic = Critic(feat_size=feat_size, units=config.units, layers=config.layers)
+        self.slow_critic = copy.deepcopy(self.critic)
+        self.slow_critic.requires_grad_(False)
+        self.register_buffer("updates", torch.zeros((), dtype=torch.long))
+
+    def critic_value(self, feat: Tensor) -> Tensor:
+        """The critic's mean value ``(...)`` of features ``(..., F)`` (no sampling; gradient kept)."""
+        return self.critic(feat).mean
+
+    @torch.no_grad()
+    def update_slow_target(self) -> None:
+        """Every ``slow_target_every`` calls (starting with the first), mix the critic into its slow target:
+        ``slow <- fraction * critic + (1 - fraction) * slow``."""
+        if int(self.updates) % self.config.slow_target_every == 0:
+            mix = self.config.slow_target_fraction
+            for slow, fast in zip(self.slow_critic.parameters(), self.critic.parameters(), strict=True):
+                slow.mul_(1.0 - mix).add_(fast, alpha=mix)
+        self.updates += 1
+
+    def imagine(
+        self, world_model: WorldModel, start: State, horizon: int | None = None, is_terminal: Tensor | None = None
+    ) -> dict[str, Tensor | State]:
+        """Roll the world model's prior forward ``horizon`` steps (default ``config.horizon``) from ``start``.
+
+        ``start``: RSSM states with batch ``(N,)`` (see :func:`flatten_states`); they are detached here.
+        ``is_terminal (N,)``, if given, replaces the predicted continuation of the start states by the true one.
+        Returns ``traj`` with ``'feat' (H+1, N, F)``, ``'action' (H+1, N, A)`` (zeros at 0), ``'state'``
+        (states with batch ``(H+1, N)``), ``'reward' (H+1, N)`` (the reward head's mean),
+        ``'continuation' (H+1, N)`` (``gamma * P(continue)``) and ``'weight' (H+1, N)`` (detached
+        ``prod_{i<t} continuation_i``). With ``actor_grad='dynamics'`` actions are reparameterised samples and
+        everything downstream carries their gradient.
+        """
+        horizon = self.config.horizon if horizon is None else horizon
+        state = {key: value.detach() for key, value in start.items()}
+        n = state["deter"].shape[0]
+        reparam = self.config.actor_grad == "dynamics"
+        states = [state]
+        feats = [world_model.features(state)]
+        actions = [torch.zeros(n, self.action_size, device=feats[0].device, dtype=feats[0].dtype)]
+        for _ in range(horizon):
+            policy = self.actor(feats[-1].detach())
+            action = policy.rsample() if reparam else policy.sample()
+            state = world_model.rssm.img_step(state, action)
+            states.append(state)
+            feats.append(world_model.features(state))
+            actions.append(action.to(feats[-1].dtype))
+        feat = torch.stack(feats, dim=0)
+        reward = world_model.reward_head(feat).mean
+        gamma = self.config.discount
+        if world_model.discount_head is not None:
+            continuation = gamma * world_model.discount_head(feat).mean
+        else:
+            continuation = torch.full_like(reward, gamma)
+        if is_terminal is not None:
+            first = gamma * (1.0 - is_terminal.reshape(n).to(continuation.dtype))
+            continuation = torch.cat([first[None], continuation[1:]], dim=0)
+        weight = torch.cumprod(torch.cat([torch.ones_like(continuation[:1]), continuation[:-1]], dim=0), dim=0)
+        return {
+            "feat": feat,
+            "action": torch.stack(actions, dim=0),
+            "state": stack_states(states, dim=0),
+            "reward": reward,
+            "continuation": continuation,
+            "weight": weight.detach(),
+        }
+
+    def losses(
+        self,
+        world_model: WorldModel,
+        traj: dict[str, Tensor | State],
+        value_regulariser: ValueRegulariser | None = None,
+    ) -> tuple[dict[str, Tensor], dict[str, Tensor]]:
+        """Actor and critic losses on an imagined trajectory (see the module docstring).
+
+        ``value_regulariser(feat (H, N, F), value (H, N)) -> (H, N)`` is called with the detached features of
+        the states ``0..H-1`` and the critic's own mean value there (with gradient); its output, multiplied by
+        the same discount weight as the regression term, is added to the critic loss (CoWorld's Eq. 6).
+
+        Returns ``(terms, metrics)``: ``terms['actor']`` and ``terms['critic']`` are the scalar losses,
+        ``terms['actor_terms'] (H-1, N)`` and ``terms['critic_terms'] (H, N)`` the unreduced ones, and
+        ``terms['target'] (H, N)`` the lambda-returns; ``metrics`` are detached scalars.
+        ``world_model`` is accepted for symmetry with :meth:`imagine` (subclasses may re-evaluate heads).
+        """
+        del world_model
+        cfg = self.config
+        feat, action, reward = traj["feat"], traj["action"], traj["reward"]
+        continuation, weight = traj["continuation"], traj["weight"]
+        assert isinstance(feat, Tensor) and isinstance(action, Tensor) and isinstance(reward, Tensor)
+        assert isinstance(continuation, Tensor) and isinstance(weight, Tensor)
+        horizon = feat.shape[0] - 1
+        slow_value = self.slow_critic(feat).mean
+        target = lambda_return(reward[:-1], slow_value[:-1], continuation[:-1], slow_value[-1], cfg.lambda_)
+
+        policy = self.actor(feat[:-2].detach())
+        entropy = policy.entropy()
+        if cfg.actor_grad == "dynamics":
+            actor_terms = actor_loss(
+                target=target[1:], weight=weight[:-2], entropy=entropy, entropy_scale=cfg.actor_entropy
+            )
+        else:
+            actor_terms = actor_loss(
+                target=target[1:],
+                weight=weight[:-2],
+                entropy=entropy,
+                entropy_scale=cfg.actor_entropy,
+                log_prob=policy.log_prob(action[1:-1].detach()),
+                baseline=slow_value[:-2].detach(),
+            )
+
+        critic_feat = feat[:-1].detach()
+        value = self.critic(critic_feat).mean
+        critic_terms = critic_loss(value, target, weight[:-1])
+        metrics: dict[str, Tensor] = {}
+        if value_regulariser is not None:
+            regulariser = value_regulariser(critic_feat, value)
+            if regulariser.shape != value.shape:
+                raise ValueError(f"value_regulariser returned {tuple(regulariser.shape)}, expected {value.shape}")
+            critic_terms = critic_terms + weight[:-1].detach() * regulariser
+            metrics["critic/regulariser"] = regulariser.detach().mean()
+        assert actor_terms.shape == (horizon - 1, feat.shape[1]) and critic_terms.shape == value.shape
+        terms = {
+            "actor": actor_terms.mean(),
+            "critic": critic_terms.mean(),
+            "actor_terms": actor_terms,
+            "critic_terms": critic_terms,
+            "target": target,
+        }
+        metrics.update(
+            {
+                "actor/entropy": entropy.detach().mean(),
+                "critic/value": value.detach().mean(),
+                "imag/return": target.detach().mean(),
+                "imag/reward": reward.detach().mean(),
+                "imag/continuation": continuation.detach().mean(),
+                "imag/action_abs": action[1:].detach().abs().mean(),
+            }
+        )
+        return terms, metrics

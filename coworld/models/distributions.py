@@ -1,0 +1,230 @@
+"""Small distribution objects used by DreamerV2's heads, latents and actor.
+
+They are plain classes rather than ``torch.distributions`` subclasses: no argument validation on the hot path,
+and each one exposes exactly what the agent uses (``mean``, ``mode``, ``sample``/``rsample``, ``log_prob``,
+``entropy``). Batch shapes are written ``(...)``; event dimensions are summed where stated.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+__all__ = ["Bernoulli", "OneHotCategorical", "TanhNormal", "TruncatedNormal", "UnitGaussian", "categorical_kl"]
+
+_LOG_SQRT_2PI = 0.5 * math.log(2.0 * math.pi)
+
+
+class UnitGaussian:
+    """Normal distribution with unit variance over the last ``event_dims`` dimensions.
+
+    Used for the image decoder, the reward head and the critic: its negative log-likelihood is half the squared
+    error. ``log_prob`` drops the additive constant ``-0.5 * log(2 pi)`` per element (it carries no gradient
+    and would only shift the logged numbers by ``0.92 * 12288`` for a 64 x 64 x 3 image).
+    """
+
+    def __init__(self, mean: Tensor, event_dims: int = 0) -> None:
+        self.mean = mean
+        """Predicted mean, shape ``(..., *event)``."""
+        self.event_dims = event_dims
+
+    @property
+    def mode(self) -> Tensor:
+        """The mean, shape ``(..., *event)``."""
+        return self.mean
+
+    def log_prob(self, value: Tensor) -> Tensor:
+        """``-0.5 * sum_event (value - mean)^2``, shape ``(...)`` (constant dropped)."""
+        squared = (value - self.mean).square()
+        if self.event_dims:
+            squared = squared.sum(dim=tuple(range(-self.event_dims, 0)))
+        return -0.5 * squared
+
+
+class Bernoulli:
+    """Bernoulli distribution parameterised by logits, shape ``(...)``; used for the continuation head."""
+
+    def __init__(self, logits: Tensor) -> None:
+        self.logits = logits
+
+    @property
+    def mean(self) -> Tensor:
+        """Probability of 1, shape ``(...)``."""
+        return torch.sigmoid(self.logits)
+
+    @property
+    def mode(self) -> Tensor:
+        """1.0 where the probability exceeds 0.5, else 0.0, shape ``(...)``."""
+        return (self.logits > 0).to(self.logits.dtype)
+
+    def log_prob(self, value: Tensor) -> Tensor:
+        """``value * log p + (1 - value) * log(1 - p)``, shape ``(...)``; ``value`` may be soft (in [0, 1])."""
+        return -F.binary_cross_entropy_with_logits(self.logits, value.to(self.logits.dtype), reduction="none")
+
+
+class OneHotCategorical:
+    """Independent categoricals over the last dimension with straight-through one-hot samples.
+
+    ``logits`` has shape ``(..., S, K)``: ``S`` latent variables with ``K`` classes each. ``rsample`` returns a
+    one-hot sample whose gradient flows to the logits as if through the probabilities
+    (``sample + probs - probs.detach()``), as in DreamerV2.
+    """
+
+    def __init__(self, logits: Tensor) -> None:
+        self.logits = logits
+
+    @property
+    def probs(self) -> Tensor:
+        """Class probabilities, shape ``(..., S, K)``."""
+        return torch.softmax(self.logits, dim=-1)
+
+    @property
+    def mode(self) -> Tensor:
+        """One-hot of the most likely class, shape ``(..., S, K)`` (no gradient)."""
+        index = self.logits.argmax(dim=-1)
+        return F.one_hot(index, self.logits.shape[-1]).to(self.logits.dtype)
+
+    def rsample(self) -> Tensor:
+        """Straight-through one-hot sample, shape ``(..., S, K)``."""
+        probs = self.probs
+        flat = probs.reshape(-1, probs.shape[-1])
+        index = torch.multinomial(flat.detach().float(), 1).squeeze(-1)
+        sample = F.one_hot(index, probs.shape[-1]).to(probs.dtype).reshape(probs.shape)
+        return sample + probs - probs.detach()
+
+    def entropy(self) -> Tensor:
+        """Entropy summed over the ``S`` variables, shape ``(...)``."""
+        log_probs = torch.log_softmax(self.logits, dim=-1)
+        return -(log_probs.exp() * log_probs).sum(dim=(-2, -1))
+
+
+def categorical_kl(lhs_logits: Tensor, rhs_logits: Tensor) -> Tensor:
+    """``KL[lhs || rhs]`` of independent categoricals, summed over ``S`` and ``K``.
+
+    Shapes: ``(..., S, K)`` each, returns ``(...)``.
+    """
+    lhs_log = torch.log_softmax(lhs_logits.float(), dim=-1)
+    rhs_log = torch.log_softmax(rhs_logits.float(), dim=-1)
+    return (lhs_log.exp() * (lhs_log - rhs_log)).sum(dim=(-2, -1))
+
+
+class TruncatedNormal:
+    """Normal distribution truncated to ``[low, high]``, independent over the last (action) dimension.
+
+    DreamerV2's actor distribution for continuous control. ``loc`` and ``scale`` have shape ``(..., A)``;
+    ``log_prob`` and ``entropy`` sum over ``A`` and return ``(...)``. ``rsample`` is reparameterised by the
+    inverse CDF: ``x = loc + scale * Phi^-1(Phi(alpha) + u * (Phi(beta) - Phi(alpha)))`` with ``u ~ U(0, 1)``,
+    so gradients reach ``loc`` and ``scale``; samples are then clipped ``clip`` inside the bounds with a
+    straight-through gradient (as DreamerV2 does).
+    """
+
+    def __init__(self, loc: Tensor, scale: Tensor, low: float = -1.0, high: float = 1.0, clip: float = 1e-6) -> None:
+        self.loc = loc
+        self.scale = scale
+        self.low = low
+        self.high = high
+        self.clip = clip
+        self._alpha = (low - loc) / scale
+        self._beta = (high - loc) / scale
+        self._cdf_alpha = torch.special.ndtr(self._alpha)
+        self._mass = (torch.special.ndtr(self._beta) - self._cdf_alpha).clamp_min(1e-8)
+
+    @property
+    def mode(self) -> Tensor:
+        """The most likely action: ``loc`` clamped to the bounds, shape ``(..., A)``."""
+        return self.loc.clamp(self.low, self.high)
+
+    @property
+    def mean(self) -> Tensor:
+        """``loc + scale * (phi(alpha) - phi(beta)) / Z``, shape ``(..., A)``."""
+        return self.loc + self.scale * (_std_normal_pdf(self._alpha) - _std_normal_pdf(self._beta)) / self._mass
+
+    def rsample(self) -> Tensor:
+        """Reparameterised sample in ``[low + clip, high - clip]``, shape ``(..., A)``."""
+        uniform = torch.rand_like(self.loc)
+        tiny = torch.finfo(self.loc.dtype).eps
+        quantile = (self._cdf_alpha + uniform * self._mass).clamp(tiny, 1.0 - tiny)
+        sample = self.loc + self.scale * torch.special.ndtri(quantile)
+        clipped = sample.clamp(self.low + self.clip, self.high - self.clip)
+        return sample + (clipped - sample).detach()
+
+    def sample(self) -> Tensor:
+        """Sample without gradient, shape ``(..., A)``."""
+        with torch.no_grad():
+            return self.rsample()
+
+    def log_prob(self, value: Tensor) -> Tensor:
+        """Log-density summed over actions, shape ``(...)`` (``value`` must lie inside the bounds)."""
+        z = (value - self.loc) / self.scale
+        log_density = -0.5 * z.square() - _LOG_SQRT_2PI - self.scale.log() - self._mass.log()
+        return log_density.sum(-1)
+
+    def entropy(self) -> Tensor:
+        """``log(sqrt(2 pi e) scale Z) + (alpha phi(alpha) - beta phi(beta)) / (2 Z)`` summed over actions."""
+        pdf_alpha = _std_normal_pdf(self._alpha)
+        pdf_beta = _std_normal_pdf(self._beta)
+        entropy = (
+            _LOG_SQRT_2PI
+            + 0.5
+            + self.scale.log()
+            + self._mass.log()
+            + (self._alpha * pdf_alpha - self._beta * pdf_beta) / (2.0 * self._mass)
+        )
+        return entropy.sum(-1)
+
+
+class TanhNormal:
+    """Normal distribution squashed by ``tanh`` into ``(-1, 1)``, independent over the last dimension.
+
+    ``loc`` and ``scale`` have shape ``(..., A)``. The entropy has no closed form: :meth:`entropy` returns the
+    one-sample estimate ``-log_prob(rsample())`` (as DreamerV1/V2 do), shape ``(...)``.
+    """
+
+    def __init__(self, loc: Tensor, scale: Tensor) -> None:
+        self.loc = loc
+        self.scale = scale
+
+    @property
+    def mode(self) -> Tensor:
+        """``tanh(loc)``, shape ``(..., A)`` (the squashed Gaussian mode, a standard approximation)."""
+        return torch.tanh(self.loc)
+
+    @property
+    def mean(self) -> Tensor:
+        """``tanh(loc)`` (approximation of the mean), shape ``(..., A)``."""
+        return torch.tanh(self.loc)
+
+    def rsample(self) -> Tensor:
+        """Reparameterised sample, shape ``(..., A)``."""
+        return torch.tanh(self.loc + self.scale * torch.randn_like(self.loc))
+
+    def sample(self) -> Tensor:
+        """Sample without gradient, shape ``(..., A)``."""
+        with torch.no_grad():
+            return self.rsample()
+
+    def log_prob(self, value: Tensor) -> Tensor:
+        """Log-density of the squashed sample summed over actions, shape ``(...)``."""
+        value = value.clamp(-1.0 + 1e-6, 1.0 - 1e-6)
+        pre = torch.atanh(value)
+        z = (pre - self.loc) / self.scale
+        log_normal = -0.5 * z.square() - _LOG_SQRT_2PI - self.scale.log()
+        # log |d tanh(x)/dx| = log(1 - tanh(x)^2) = 2 * (log 2 - x - softplus(-2x)), stable for large |x|.
+        log_det = 2.0 * (math.log(2.0) - pre - F.softplus(-2.0 * pre))
+        return (log_normal - log_det).sum(-1)
+
+    def entropy(self) -> Tensor:
+        """One-sample entropy estimate ``-log_prob(x)``, ``x ~ rsample()``, shape ``(...)``."""
+        pre = self.loc + self.scale * torch.randn_like(self.loc)
+        z = (pre - self.loc) / self.scale
+        log_normal = -0.5 * z.square() - _LOG_SQRT_2PI - self.scale.log()
+        log_det = 2.0 * (math.log(2.0) - pre - F.softplus(-2.0 * pre))
+        return -(log_normal - log_det).sum(-1)
+
+
+def _std_normal_pdf(x: Tensor) -> Tensor:
+    """Standard normal density, elementwise."""
+    return torch.exp(-0.5 * x.square() - _LOG_SQRT_2PI)

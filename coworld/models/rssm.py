@@ -1,0 +1,141 @@
+"""Recurrent state-space model with discrete latents (DreamerV2, paper Sec. 3.2.1).
+
+    recurrent:       h_t = GRU(h_{t-1}, MLP([z_{t-1}, a_{t-1}]))
+    transition:      z_t ~ p(z_t | h_t)           (the prior, ``img_step``)
+    representation:  z_t ~ q(z_t | h_t, e(o_t))   (the posterior, ``obs_step``)
+
+``z`` is ``S`` categorical variables with ``K`` classes each, sampled one-hot with straight-through gradients.
+A state is a dict of tensors with a shared batch shape ``(...)``:
+
+* ``deter``: ``(..., D)`` the GRU state ``h``;
+* ``logits``: ``(..., S, K)`` log-probabilities of ``z`` (normalised; uniform mixture applied when ``unimix > 0``);
+* ``stoch``: ``(..., S, K)`` the one-hot sample ``z``.
+
+Features fed to every head are ``[deter, stoch flattened]``: ``(..., D + S * K)``.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+
+from coworld.models.distributions import OneHotCategorical
+from coworld.models.networks import LayerNormGRUCell, glorot_init
+
+__all__ = ["RSSM", "State", "stack_states"]
+
+State = dict[str, Tensor]
+"""An RSSM state: ``deter (..., D)``, ``logits (..., S, K)``, ``stoch (..., S, K)``."""
+
+
+class RSSM(nn.Module):
+    """DreamerV2's RSSM with a layer-normed GRU and ``stoch x classes`` categorical latents."""
+
+    def __init__(
+        self,
+        *,
+        embed_size: int,
+        action_size: int,
+        deter: int,
+        hidden: int,
+        stoch: int,
+        classes: int,
+        unimix: float = 0.0,
+    ) -> None:
+        super().__init__()
+        self.deter_size = deter
+        self.stoch = stoch
+        self.classes = classes
+        self.unimix = unimix
+        self.feat_size = deter + stoch * classes
+        """Length of :meth:`features`: ``D + S * K``."""
+        self.img_in = nn.Sequential(nn.Linear(stoch * classes + action_size, hidden), nn.ELU())
+        self.cell = LayerNormGRUCell(in_size=hidden, size=deter)
+        self.img_out = nn.Sequential(nn.Linear(deter, hidden), nn.ELU(), nn.Linear(hidden, stoch * classes))
+        self.obs_out = nn.Sequential(
+            nn.Linear(deter + embed_size, hidden), nn.ELU(), nn.Linear(hidden, stoch * classes)
+        )
+        glorot_init(self.img_in)
+        glorot_init(self.img_out)
+        glorot_init(self.obs_out)
+
+    def initial(self, batch_size: int, device: torch.device | str | None = None) -> State:
+        """The all-zero state for ``batch_size`` sequences: ``deter (N, D)``, ``logits``/``stoch (N, S, K)``."""
+        device = device if device is not None else self.cell.linear.weight.device
+        zeros = torch.zeros(batch_size, self.stoch, self.classes, device=device)
+        return {"deter": torch.zeros(batch_size, self.deter_size, device=device), "logits": zeros, "stoch": zeros}
+
+    def features(self, state: State) -> Tensor:
+        """``[deter, stoch flattened]``: ``(..., D + S * K)``."""
+        stoch = state["stoch"]
+        return torch.cat([state["deter"], stoch.reshape(*stoch.shape[:-2], -1).to(state["deter"].dtype)], dim=-1)
+
+    def dist(self, state: State) -> OneHotCategorical:
+        """The categorical distribution of ``z`` in ``state`` (batch ``(..., S)``, ``K`` classes)."""
+        return OneHotCategorical(state["logits"])
+
+    def img_step(self, prev_state: State, prev_action: Tensor, sample: bool = True) -> State:
+        """Prior step: ``(N, ...)`` state and ``(N, A)`` action to the prior state at the next step ``(N, ...)``."""
+        stoch = prev_state["stoch"].reshape(prev_action.shape[0], -1)
+        x = self.img_in(torch.cat([stoch, prev_action.to(stoch.dtype)], dim=-1))
+        deter = self.cell(x, prev_state["deter"])
+        logits = self._logits(self.img_out(deter))
+        return {"deter": deter, "logits": logits, "stoch": self._sample(logits, sample)}
+
+    def obs_step(
+        self,
+        prev_state: State,
+        prev_action: Tensor,
+        embed: Tensor,
+        is_first: Tensor | None = None,
+        sample: bool = True,
+    ) -> tuple[State, State]:
+        """Posterior step with the embedding ``(N, E)`` of the new observation; returns ``(post, prior)``.
+
+        Where ``is_first (N,)`` is true the previous state and action are zeroed first (a new episode starts).
+        """
+        if is_first is not None:
+            keep = (~is_first.bool()).to(prev_action.dtype)
+            prev_state = {k: v * keep.reshape(-1, *([1] * (v.ndim - 1))) for k, v in prev_state.items()}
+            prev_action = prev_action * keep[:, None]
+        prior = self.img_step(prev_state, prev_action, sample)
+        logits = self._logits(self.obs_out(torch.cat([prior["deter"], embed.to(prior["deter"].dtype)], dim=-1)))
+        post = {"deter": prior["deter"], "logits": logits, "stoch": self._sample(logits, sample)}
+        return post, prior
+
+    def observe(
+        self, embed: Tensor, action: Tensor, is_first: Tensor, state: State | None = None
+    ) -> tuple[State, State]:
+        """Run the posterior over sequences; returns ``(post, prior)`` with batch shape ``(B, T)``.
+
+        ``embed (B, T, E)``; ``action (B, T, A)`` is the action that led to step ``t``; ``is_first (B, T)``
+        resets the recurrent state; ``state`` (batch ``(B,)``) is the state before step 0 (zeros if None).
+        """
+        batch, length = action.shape[:2]
+        if state is None:
+            state = self.initial(batch, action.device)
+        posts: list[State] = []
+        priors: list[State] = []
+        for t in range(length):
+            state, prior = self.obs_step(state, action[:, t], embed[:, t], is_first[:, t])
+            posts.append(state)
+            priors.append(prior)
+        return stack_states(posts), stack_states(priors)
+
+    def _logits(self, raw: Tensor) -> Tensor:
+        """Raw ``(N, S * K)`` outputs to normalised log-probabilities ``(N, S, K)``, float32, with unimix."""
+        logits = raw.float().reshape(raw.shape[0], self.stoch, self.classes)
+        if self.unimix > 0.0:
+            probs = (1.0 - self.unimix) * torch.softmax(logits, -1) + self.unimix / self.classes
+            return probs.log()
+        return torch.log_softmax(logits, -1)
+
+    def _sample(self, logits: Tensor, sample: bool) -> Tensor:
+        """Straight-through one-hot sample (``sample``) or the one-hot mode, ``(N, S, K)``."""
+        dist = OneHotCategorical(logits)
+        return dist.rsample() if sample else dist.mode
+
+
+def stack_states(states: list[State], dim: int = 1) -> State:
+    """Stack a list of states with batch ``(N,)`` into one with batch ``(N, T)`` (``dim=1``) or ``(T, N)``."""
+    return {key: torch.stack([s[key] for s in states], dim=dim) for key in states[0]}

@@ -1,0 +1,145 @@
+"""DreamerV2's world model: encoder, RSSM, decoder, reward head and discount head.
+
+Batches follow the replay / dataset-sampler convention, as torch tensors on the model's device:
+
+* ``image`` uint8 ``(B, T, H, W, C)``: converted to float ``(B, T, C, H, W)`` in ``[-0.5, 0.5]`` here;
+* ``action`` float ``(B, T, A)``: the action that led to step ``t`` (zeros where ``is_first``);
+* ``reward`` float ``(B, T)``: the reward received on arriving at step ``t``;
+* ``is_first``, ``is_last``, ``is_terminal`` bool ``(B, T)``.
+
+The reward and discount heads predict ``reward[t]`` and ``1 - is_terminal[t]`` from the posterior at ``t``.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from torch import Tensor, nn
+
+from coworld.config import WorldModelConfig
+from coworld.losses.dreamer import discount_loss, image_loss, kl_balanced_loss, reward_loss
+from coworld.models.distributions import Bernoulli, UnitGaussian
+from coworld.models.networks import MLP, ConvDecoder, ConvEncoder, check_image_shape
+from coworld.models.rssm import RSSM, State
+
+__all__ = ["DiscountHead", "RewardHead", "WorldModel", "preprocess_image"]
+
+
+def preprocess_image(image: Tensor) -> Tensor:
+    """uint8 ``(..., H, W, C)`` to float32 ``(..., C, H, W)`` in ``[-0.5, 0.5]``."""
+    return image.movedim(-1, -3).float() / 255.0 - 0.5
+
+
+class RewardHead(nn.Module):
+    """MLP from features ``(..., F)`` to a :class:`UnitGaussian` over the reward, batch ``(...)``.
+
+    ``reward_head(feat).mean`` is the predicted reward ``(...)`` (float32); pass the distribution (or its mean)
+    and any target to :func:`coworld.losses.dreamer.reward_loss` for the negative log-likelihood.
+    """
+
+    def __init__(self, *, feat_size: int, units: int, layers: int) -> None:
+        super().__init__()
+        self.mlp = MLP(in_size=feat_size, out_size=1, units=units, layers=layers)
+
+    def forward(self, feat: Tensor) -> UnitGaussian:
+        """``(..., F)`` -> reward distribution with mean ``(...)``."""
+        return UnitGaussian(self.mlp(feat).squeeze(-1).float())
+
+
+class DiscountHead(nn.Module):
+    """MLP from features ``(..., F)`` to a :class:`Bernoulli` over continuation (``1 - is_terminal``).
+
+    ``discount_head(feat).mean`` is the predicted probability that the episode continues, ``(...)``.
+    """
+
+    def __init__(self, *, feat_size: int, units: int, layers: int) -> None:
+        super().__init__()
+        self.mlp = MLP(in_size=feat_size, out_size=1, units=units, layers=layers)
+
+    def forward(self, feat: Tensor) -> Bernoulli:
+        """``(..., F)`` -> continuation distribution, batch ``(...)``."""
+        return Bernoulli(self.mlp(feat).squeeze(-1).float())
+
+
+class WorldModel(nn.Module):
+    """Encoder ``e(o)``, RSSM, decoder ``p(o | h, z)``, reward head and (optional) discount head."""
+
+    def __init__(
+        self, *, config: WorldModelConfig, action_size: int, image_shape: tuple[int, int, int] = (64, 64, 3)
+    ) -> None:
+        super().__init__()
+        check_image_shape(image_shape)
+        self.config = config
+        self.action_size = action_size
+        self.image_shape = tuple(image_shape)
+        channels = image_shape[2]
+        self.encoder = ConvEncoder(channels=channels, depth=config.cnn_depth)
+        self.rssm = RSSM(
+            embed_size=self.encoder.embed_size,
+            action_size=action_size,
+            deter=config.deter,
+            hidden=config.hidden,
+            stoch=config.stoch,
+            classes=config.classes,
+            unimix=config.unimix,
+        )
+        self.feat_size = self.rssm.feat_size
+        """Length of the features ``D + S * K``."""
+        self.decoder = ConvDecoder(feat_size=self.feat_size, channels=channels, depth=config.cnn_depth)
+        self.reward_head = RewardHead(feat_size=self.feat_size, units=config.mlp_units, layers=config.mlp_layers)
+        self.discount_head: DiscountHead | None = (
+            DiscountHead(feat_size=self.feat_size, units=config.mlp_units, layers=config.mlp_layers)
+            if config.pred_discount
+            else None
+        )
+
+    def encode(self, image: Tensor) -> Tensor:
+        """uint8 images ``(..., H, W, C)`` -> embeddings ``(..., E)``."""
+        return self.encoder(preprocess_image(image))
+
+    def features(self, state: State) -> Tensor:
+        """RSSM state -> features ``(..., D + S * K)``."""
+        return self.rssm.features(state)
+
+    def observe(self, batch: dict[str, Tensor], state: State | None = None) -> tuple[State, State, Tensor]:
+        """Encode a batch and run the posterior over it.
+
+        Returns ``(post, prior, embed)``: states with batch ``(B, T)`` (``deter (B, T, D)``,
+        ``logits``/``stoch (B, T, S, K)``) and the embeddings ``(B, T, E)``. The recurrent state and the previous
+        action are zeroed where ``is_first``; ``state`` (batch ``(B,)``) continues from an earlier chunk.
+        """
+        embed = self.encode(batch["image"])
+        post, prior = self.rssm.observe(embed, batch["action"], batch["is_first"], state)
+        return post, prior, embed
+
+    def loss(self, batch: dict[str, Tensor]) -> tuple[dict[str, Tensor], dict[str, Any]]:
+        """DreamerV2's world-model loss on a batch.
+
+        Returns ``(terms, aux)``. ``terms`` holds unreduced ``(B, T)`` tensors: ``'image'``, ``'reward'``,
+        ``'discount'`` (only with ``pred_discount``) negative log-likelihoods and ``'kl'``, the balanced KL before
+        free nats. ``aux`` holds ``'post'``, ``'prior'`` (states, batch ``(B, T)``), ``'embed' (B, T, E)``,
+        ``'feat' (B, T, F)``, ``'kl_loss'`` (the scalar KL loss after balancing and free nats) and ``'loss'``::
+
+            loss = image_scale * mean(image) + reward_scale * mean(reward)
+                   + discount_scale * mean(discount) + kl_scale * kl_loss
+        """
+        cfg = self.config
+        batch_size, length = batch["action"].shape[:2]
+        post, prior, embed = self.observe(batch)
+        feat = self.features(post)
+        terms: dict[str, Tensor] = {
+            "image": image_loss(self.decoder(feat).float(), preprocess_image(batch["image"])),
+            "reward": reward_loss(self.reward_head(feat), batch["reward"].float()),
+        }
+        if self.discount_head is not None:
+            continuation = 1.0 - batch["is_terminal"].float()
+            terms["discount"] = discount_loss(self.discount_head(feat), continuation)
+        kl_loss, terms["kl"] = kl_balanced_loss(post["logits"], prior["logits"], cfg.kl_balance, cfg.free_nats)
+        for name, term in terms.items():
+            assert term.shape == (batch_size, length), f"{name} term has shape {tuple(term.shape)}"
+        loss = cfg.image_scale * terms["image"].mean() + cfg.reward_scale * terms["reward"].mean()
+        if "discount" in terms:
+            loss = loss + cfg.discount_scale * terms["discount"].mean()
+        loss = loss + cfg.kl_scale * kl_loss
+        aux = {"post": post, "prior": prior, "embed": embed, "feat": feat, "kl_loss": kl_loss, "loss": loss}
+        return terms, aux

@@ -1,0 +1,231 @@
+"""The DreamerV2 agent: training step, policy with per-row resets, checkpoints, hooks, device and precision."""
+
+from __future__ import annotations
+
+import io
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from coworld.agents.dreamerv2 import DreamerV2, resolve_device, resolve_precision
+from coworld.config import Config, make_config
+from coworld.errors import ConfigError
+
+ACTION_SIZE = 2
+
+
+@pytest.fixture(autouse=True)
+def _seeded_single_thread() -> None:
+    torch.set_num_threads(1)
+    torch.manual_seed(0)
+
+
+@pytest.fixture
+def tiny() -> Config:
+    return make_config("tiny", {"device": "cpu"})
+
+
+def numpy_batch(batch: int = 2, length: int = 6, seed: int = 0) -> dict[str, np.ndarray]:
+    """A replay-convention batch of NumPy arrays (rewards float64 on purpose: to_batch must cast them)."""
+    rng = np.random.default_rng(seed)
+    is_first = np.zeros((batch, length), bool)
+    is_first[:, 0] = True
+    action = rng.uniform(-1, 1, (batch, length, ACTION_SIZE)).astype(np.float32)
+    action[is_first] = 0.0
+    is_terminal = np.zeros((batch, length), bool)
+    is_terminal[-1, -1] = True
+    return {
+        "image": rng.integers(0, 256, (batch, length, 64, 64, 3), dtype=np.uint8),
+        "action": action,
+        "reward": rng.normal(size=(batch, length)),
+        "is_first": is_first,
+        "is_last": is_terminal.copy(),
+        "is_terminal": is_terminal,
+    }
+
+
+def _params(module: torch.nn.Module) -> torch.Tensor:
+    return torch.cat([p.detach().flatten() for p in module.parameters()]).clone()
+
+
+def test_to_batch_keeps_uint8_images_and_casts_floats(tiny: Config) -> None:
+    agent = DreamerV2(config=tiny, action_size=ACTION_SIZE)
+    batch = agent.to_batch(numpy_batch())
+    assert batch["image"].dtype == torch.uint8 and batch["image"].shape == (2, 6, 64, 64, 3)
+    assert batch["reward"].dtype == torch.float32 and batch["action"].dtype == torch.float32
+    assert batch["is_first"].dtype == torch.bool
+
+
+def test_train_updates_all_networks_and_reports_metrics(tiny: Config) -> None:
+    agent = DreamerV2(config=tiny, action_size=ACTION_SIZE)
+    before = [_params(m) for m in (agent.world_model, agent.actor_critic.actor, agent.actor_critic.critic)]
+    metrics = agent.train(numpy_batch())
+    after = [_params(m) for m in (agent.world_model, agent.actor_critic.actor, agent.actor_critic.critic)]
+    assert all(not torch.equal(b, a) for b, a in zip(before, after, strict=True))
+    expected = {
+        "wm/image",
+        "wm/reward",
+        "wm/discount",
+        "wm/kl",
+        "wm/loss",
+        "wm/grad_norm",
+        "actor/loss",
+        "actor/entropy",
+        "critic/loss",
+        "critic/value",
+        "imag/return",
+    }
+    assert expected <= set(metrics)
+    assert all(isinstance(v, float) and math.isfinite(v) for v in metrics.values())
+    assert agent.updates == 1 and int(agent.actor_critic.updates) == 1
+    # The first update copied the critic into the slow target before the critic step.
+    assert not torch.equal(_params(agent.actor_critic.slow_critic), after[2])
+
+
+def test_policy_modes_shapes_and_bounds(tiny: Config) -> None:
+    agent = DreamerV2(config=tiny, action_size=ACTION_SIZE)
+    obs = numpy_batch(batch=3)["image"][:, 0]
+    for mode in ("train", "eval", "random"):
+        action, state = agent.policy(obs, None, mode)
+        assert action.shape == (3, ACTION_SIZE) and action.dtype == np.float32
+        assert np.all(np.abs(action) <= 1.0)
+        assert (state is None) == (mode == "random")
+    _, state = agent.policy(obs, None, "eval")
+    torch.manual_seed(5)
+    first, _ = agent.policy(obs, state, "eval")
+    torch.manual_seed(5)
+    again, _ = agent.policy(obs, state, "eval")
+    np.testing.assert_array_equal(first, again)
+    with pytest.raises(ValueError, match="mode"):
+        agent.policy(obs, None, "explore")  # type: ignore[arg-type]
+
+
+def test_policy_is_first_resets_single_rows(tiny: Config) -> None:
+    agent = DreamerV2(config=tiny, action_size=ACTION_SIZE)
+    frames = numpy_batch(batch=3, length=4)["image"]
+    state = None
+    for t in range(3):
+        _, state = agent.policy(frames[:, t], state, "train")
+    obs = frames[:, 3]
+    torch.manual_seed(11)
+    reset, reset_state = agent.policy(obs, state, "eval", is_first=np.array([True, False, False]))
+    torch.manual_seed(11)
+    fresh, fresh_state = agent.policy(obs, None, "eval")
+    assert reset_state is not None and fresh_state is not None
+    np.testing.assert_array_equal(reset[0], fresh[0])
+    torch.testing.assert_close(reset_state[0]["deter"][0], fresh_state[0]["deter"][0])
+    assert not torch.allclose(reset_state[0]["deter"][1:], fresh_state[0]["deter"][1:])
+
+
+def test_state_dict_round_trip_through_weights_only_load(tiny: Config) -> None:
+    agent = DreamerV2(config=tiny, action_size=ACTION_SIZE)
+    for seed in range(2):
+        agent.train(numpy_batch(seed=seed))
+    buffer = io.BytesIO()
+    torch.save(agent.state_dict(), buffer)
+    buffer.seek(0)
+    loaded = torch.load(buffer, weights_only=True)
+    clone = DreamerV2(config=tiny, action_size=ACTION_SIZE)
+    clone.load_state_dict(loaded)
+    assert clone.updates == 2 and int(clone.actor_critic.updates) == 2
+    obs = numpy_batch(batch=4)["image"][:, 0]
+    torch.manual_seed(3)
+    a1, _ = agent.policy(obs, None, "eval")
+    torch.manual_seed(3)
+    a2, _ = clone.policy(obs, None, "eval")
+    np.testing.assert_array_equal(a1, a2)
+    # Optimiser moments came along too: one more identical update gives identical parameters.
+    batch = numpy_batch(seed=7)
+    torch.manual_seed(4)
+    m1 = agent.train(batch)
+    torch.manual_seed(4)
+    m2 = clone.train(batch)
+    assert m1 == m2
+    torch.testing.assert_close(_params(agent.world_model), _params(clone.world_model), rtol=0, atol=0)
+
+
+def test_extra_world_model_loss_is_added_and_logged(tiny: Config) -> None:
+    agent = DreamerV2(config=tiny, action_size=ACTION_SIZE)
+
+    def extra(batch: dict[str, torch.Tensor], aux: dict) -> dict[str, torch.Tensor]:
+        assert aux["embed"].shape[:2] == batch["action"].shape[:2]
+        return {"align": 10.0 + 0.0 * aux["embed"].sum()}
+
+    metrics, post = agent.train_world_model(numpy_batch(), extra_loss=extra)
+    assert metrics["wm/align"] == 10.0
+    base = metrics["wm/image"] + metrics["wm/reward"] + metrics["wm/discount"] + metrics["wm/kl_loss"]
+    assert metrics["wm/loss"] == pytest.approx(base + 10.0, rel=1e-5)
+    assert post["deter"].shape == (2, 6, tiny.world_model.deter) and not post["deter"].requires_grad
+
+
+def test_value_regulariser_hook_changes_the_critic_update(tiny: Config) -> None:
+    plain, regularised = (DreamerV2(config=tiny, action_size=ACTION_SIZE) for _ in range(2))
+    regularised.load_state_dict(plain.state_dict())
+    batch = numpy_batch()
+    torch.manual_seed(1)
+    _, post = plain.train_world_model(batch)
+    m_plain = plain.train_actor_critic(post)
+    torch.manual_seed(1)
+    _, post = regularised.train_world_model(batch)
+    m_reg = regularised.train_actor_critic(post, lambda feat, value: 5.0 * value)
+    assert m_reg["critic/regulariser"] == pytest.approx(5.0 * m_reg["critic/value"], rel=1e-5)
+    assert m_reg["critic/loss"] != m_plain["critic/loss"]
+    torch.testing.assert_close(_params(plain.actor_critic.actor), _params(regularised.actor_critic.actor))
+    assert not torch.equal(_params(plain.actor_critic.critic), _params(regularised.actor_critic.critic))
+
+
+def test_resolve_device_and_precision() -> None:
+    cpu = torch.device("cpu")
+    assert resolve_device("cpu") == cpu
+    assert resolve_device("auto") == torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    with pytest.raises(ConfigError, match="unknown device"):
+        resolve_device("tpu9")
+    if not torch.cuda.is_available():
+        with pytest.raises(ConfigError, match="no CUDA"):
+            resolve_device("cuda")
+    assert resolve_precision("auto", cpu) is None
+    assert resolve_precision("auto", torch.device("cuda")) is torch.bfloat16
+    assert resolve_precision("bf16", cpu) is torch.bfloat16
+    assert resolve_precision("fp32", torch.device("cuda")) is None
+    with pytest.raises(ConfigError, match="precision"):
+        resolve_precision("fp8", cpu)
+
+
+def test_bf16_autocast_step_runs_on_cpu(tiny: Config) -> None:
+    agent = DreamerV2(config=make_config("tiny", {"device": "cpu", "precision": "bf16"}), action_size=ACTION_SIZE)
+    assert agent.autocast_dtype is torch.bfloat16
+    metrics = agent.train(numpy_batch(length=4))
+    assert all(math.isfinite(v) for v in metrics.values())
+    # Parameters and optimiser state stay float32 under autocast.
+    assert all(p.dtype == torch.float32 for p in agent.world_model.parameters())
+
+
+def test_compile_is_ignored_on_cpu() -> None:
+    agent = DreamerV2(config=make_config("tiny", {"device": "cpu", "compile": True}), action_size=ACTION_SIZE)
+    assert not agent.compiled
+    assert all(
+        not hasattr(m, "_compiled_call_impl") or m._compiled_call_impl is None for m in agent.world_model.modules()
+    )
+
+
+def test_value_reads_the_critic_at_the_policy_state():
+    import numpy as np
+    import torch
+
+    from coworld.agents.dreamerv2 import DreamerV2
+    from coworld.config import make_config
+
+    agent = DreamerV2(config=make_config("tiny", ["device=cpu"]), action_size=2)
+    obs = np.random.default_rng(0).integers(0, 255, (3, 64, 64, 3), dtype=np.uint8)
+    _, state = agent.policy(obs, None, mode="eval")
+    value = agent.value(state)
+    assert value.shape == (3,)
+    with torch.no_grad():
+        expected = agent.actor_critic.critic(agent.world_model.features(state[0])).mean
+    np.testing.assert_allclose(value, expected.numpy(), rtol=1e-6)
+    with torch.no_grad():  # and it follows the critic's weights
+        for p in agent.actor_critic.critic.parameters():
+            p.add_(0.5)
+    assert not np.allclose(agent.value(state), value)

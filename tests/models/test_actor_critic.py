@@ -1,0 +1,183 @@
+"""Imagination, actor and critic losses, the value-regulariser hook and the slow target."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+import torch
+
+from coworld.config import Config
+from coworld.errors import ConfigError
+from coworld.losses.dreamer import lambda_return
+from coworld.models.actor_critic import ActorCritic, flatten_states
+from coworld.models.distributions import TanhNormal, TruncatedNormal
+from coworld.models.networks import frozen_parameters
+from coworld.models.world_model import WorldModel
+
+from .conftest import ACTION_SIZE, random_batch
+
+
+def _setup(config: Config) -> tuple[WorldModel, ActorCritic, dict[str, torch.Tensor]]:
+    wm = WorldModel(config=config.world_model, action_size=ACTION_SIZE)
+    ac = ActorCritic(config=config.actor_critic, feat_size=wm.feat_size, action_size=ACTION_SIZE)
+    batch = random_batch(batch=2, length=3)
+    post, _, _ = wm.observe(batch)
+    return wm, ac, flatten_states(post)
+
+
+def test_flatten_states_merges_batch_and_time(tiny: Config) -> None:
+    wm = WorldModel(config=tiny.world_model, action_size=ACTION_SIZE)
+    post, _, _ = wm.observe(random_batch(batch=2, length=3))
+    start = flatten_states(post)
+    assert start["deter"].shape == (6, tiny.world_model.deter)
+    assert start["stoch"].shape == (6, tiny.world_model.stoch, tiny.world_model.classes)
+    assert not start["deter"].requires_grad
+    torch.testing.assert_close(start["deter"][4], post["deter"][1, 1].detach())
+
+
+def test_imagine_shapes_weights_and_first_continuation(tiny: Config) -> None:
+    wm, ac, start = _setup(tiny)
+    horizon, n = tiny.actor_critic.horizon, 6
+    is_terminal = torch.tensor([True, False, False, False, False, False])
+    traj = ac.imagine(wm, start, is_terminal=is_terminal)
+    assert traj["feat"].shape == (horizon + 1, n, wm.feat_size)
+    assert traj["action"].shape == (horizon + 1, n, ACTION_SIZE)
+    assert traj["state"]["deter"].shape == (horizon + 1, n, tiny.world_model.deter)
+    for key in ("reward", "continuation", "weight"):
+        assert traj[key].shape == (horizon + 1, n)
+    assert torch.equal(traj["action"][0], torch.zeros(n, ACTION_SIZE))
+    assert float(traj["action"][1:].detach().abs().max()) < 1.0
+    torch.testing.assert_close(traj["feat"][0], wm.features(start))
+    gamma = tiny.actor_critic.discount
+    cont = traj["continuation"].detach()
+    assert float(cont[0, 0]) == 0.0 and float(cont[0, 1]) == pytest.approx(gamma)
+    expected_weight = torch.cumprod(torch.cat([torch.ones(1, n), cont[:-1]]), dim=0)
+    torch.testing.assert_close(traj["weight"], expected_weight)
+    assert torch.all(traj["weight"][1:, 0] == 0.0)  # nothing after a terminal start state counts
+
+
+def test_losses_use_slow_critic_lambda_returns(tiny: Config) -> None:
+    wm, ac, start = _setup(tiny)
+    with frozen_parameters(wm):
+        traj = ac.imagine(wm, start)
+        terms, metrics = ac.losses(wm, traj)
+    h, n = tiny.actor_critic.horizon, 6
+    assert terms["actor_terms"].shape == (h - 1, n) and terms["critic_terms"].shape == (h, n)
+    assert terms["actor"].shape == () and terms["critic"].shape == ()
+    slow = ac.slow_critic(traj["feat"]).mean.detach()
+    expected = lambda_return(
+        traj["reward"][:-1].detach(), slow[:-1], traj["continuation"][:-1].detach(), slow[-1], tiny.actor_critic.lambda_
+    )
+    torch.testing.assert_close(terms["target"].detach(), expected)
+    value = ac.critic_value(traj["feat"][:-1].detach()).detach()
+    critic = (traj["weight"][:-1] * 0.5 * (value - expected) ** 2).mean()
+    torch.testing.assert_close(terms["critic"].detach(), critic)
+    assert {"actor/entropy", "critic/value", "imag/return"} <= set(metrics)
+
+
+def test_dynamics_gradient_reaches_actor_through_frozen_world_model(tiny: Config) -> None:
+    wm, ac, start = _setup(tiny)
+    with frozen_parameters(wm):
+        traj = ac.imagine(wm, start)
+        terms, _ = ac.losses(wm, traj)
+    (terms["actor"] + terms["critic"]).backward()
+    assert all(p.grad is None for p in wm.parameters())
+    assert all(p.grad is None for p in ac.slow_critic.parameters())
+    actor_grad = torch.cat([p.grad.flatten() for p in ac.actor.parameters()])
+    critic_grad = torch.cat([p.grad.flatten() for p in ac.critic.parameters()])
+    assert actor_grad.abs().sum() > 0 and critic_grad.abs().sum() > 0
+    # The same with zero entropy scale: gradient then comes only from the imagined returns.
+    no_ent = dataclasses.replace(tiny.actor_critic, actor_entropy=0.0)
+    ac2 = ActorCritic(config=no_ent, feat_size=wm.feat_size, action_size=ACTION_SIZE)
+    with frozen_parameters(wm):
+        terms2, _ = ac2.losses(wm, ac2.imagine(wm, start))
+    grads = torch.autograd.grad(terms2["actor"], list(ac2.actor.parameters()))
+    assert sum(float(g.abs().sum()) for g in grads) > 0
+
+
+def test_reinforce_actor_loss_has_no_path_through_dynamics(tiny: Config) -> None:
+    config = dataclasses.replace(tiny, actor_critic=dataclasses.replace(tiny.actor_critic, actor_grad="reinforce"))
+    wm, ac, start = _setup(config)
+    traj = ac.imagine(wm, start)
+    assert not traj["action"].requires_grad
+    terms, _ = ac.losses(wm, traj)
+    grads = torch.autograd.grad(terms["actor"], [*ac.actor.parameters(), *wm.rssm.parameters()], allow_unused=True)
+    actor_grads = grads[: len(list(ac.actor.parameters()))]
+    rssm_grads = grads[len(actor_grads) :]
+    assert sum(float(g.abs().sum()) for g in actor_grads if g is not None) > 0
+    assert all(g is None or float(g.abs().sum()) == 0.0 for g in rssm_grads)
+
+
+def test_value_regulariser_gets_critic_value_and_adds_weighted_term(tiny: Config) -> None:
+    wm, ac, start = _setup(tiny)
+    with frozen_parameters(wm):
+        traj = ac.imagine(wm, start)
+        seen: dict[str, torch.Tensor] = {}
+
+        def regulariser(feat: torch.Tensor, value: torch.Tensor) -> torch.Tensor:
+            seen["feat"], seen["value"] = feat, value
+            return 0.3 * value
+
+        plain, _ = ac.losses(wm, traj)
+        reg, metrics = ac.losses(wm, traj, value_regulariser=regulariser)
+    h, n = tiny.actor_critic.horizon, 6
+    assert seen["feat"].shape == (h, n, wm.feat_size) and not seen["feat"].requires_grad
+    assert seen["value"].requires_grad
+    torch.testing.assert_close(seen["value"].detach(), ac.critic_value(traj["feat"][:-1]).detach())
+    extra = (traj["weight"][:-1] * 0.3 * seen["value"].detach()).mean()
+    torch.testing.assert_close(reg["critic"].detach(), plain["critic"].detach() + extra)
+    assert "critic/regulariser" in metrics
+    with pytest.raises(ValueError, match="value_regulariser"):
+        ac.losses(wm, traj, value_regulariser=lambda feat, value: value[:-1])
+
+
+def test_slow_target_copies_every_n_updates(tiny: Config) -> None:
+    config = dataclasses.replace(tiny.actor_critic, slow_target_every=3)
+    ac = ActorCritic(config=config, feat_size=8, action_size=2)
+    feat = torch.randn(5, 8)
+
+    def perturb() -> None:
+        with torch.no_grad():
+            for p in ac.critic.parameters():
+                p.add_(torch.randn_like(p))
+
+    perturb()
+    ac.update_slow_target()  # update 0: copy
+    torch.testing.assert_close(ac.slow_critic(feat).mean, ac.critic(feat).mean)
+    perturb()
+    copied = ac.slow_critic(feat).mean.clone()
+    ac.update_slow_target()  # 1
+    ac.update_slow_target()  # 2
+    torch.testing.assert_close(ac.slow_critic(feat).mean, copied)
+    assert not torch.allclose(ac.slow_critic(feat).mean, ac.critic(feat).mean)
+    ac.update_slow_target()  # 3: copy
+    torch.testing.assert_close(ac.slow_critic(feat).mean, ac.critic(feat).mean)
+    assert int(ac.updates) == 4
+
+
+def test_slow_target_fraction_mixes(tiny: Config) -> None:
+    config = dataclasses.replace(tiny.actor_critic, slow_target_every=1, slow_target_fraction=0.25)
+    ac = ActorCritic(config=config, feat_size=8, action_size=2)
+    before = [p.clone() for p in ac.slow_critic.parameters()]
+    with torch.no_grad():
+        for p in ac.critic.parameters():
+            p.add_(1.0)
+    ac.update_slow_target()
+    for old, new, fast in zip(before, ac.slow_critic.parameters(), ac.critic.parameters(), strict=True):
+        torch.testing.assert_close(new, 0.75 * old + 0.25 * fast)
+
+
+def test_actor_distributions_and_bad_names(tiny: Config) -> None:
+    ac = ActorCritic(config=tiny.actor_critic, feat_size=8, action_size=2)
+    dist = ac.actor(torch.randn(4, 8))
+    assert isinstance(dist, TruncatedNormal)
+    assert float(dist.scale.detach().min()) >= tiny.actor_critic.actor_min_std
+    tanh = ActorCritic(
+        config=dataclasses.replace(tiny.actor_critic, actor_dist="tanh_normal"), feat_size=8, action_size=2
+    )
+    assert isinstance(tanh.actor(torch.randn(4, 8)), TanhNormal)
+    with pytest.raises(ConfigError, match="actor_dist"):
+        ActorCritic(config=dataclasses.replace(tiny.actor_critic, actor_dist="gauss"), feat_size=8, action_size=2)
+    with pytest.raises(ConfigError, match="actor_grad"):
+        ActorCritic(config=dataclasses.replace(tiny.actor_critic, actor_grad="both"), feat_size=8, action_size=2)

@@ -1,0 +1,96 @@
+"""The distributions against closed forms, numerical integrals and autograd."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+
+from coworld.models.distributions import (
+    Bernoulli,
+    OneHotCategorical,
+    TanhNormal,
+    TruncatedNormal,
+    UnitGaussian,
+    categorical_kl,
+)
+
+
+def test_straight_through_sample_is_one_hot_with_probability_gradient() -> None:
+    logits = torch.randn(4, 3, 5, requires_grad=True)
+    weights = torch.randn(4, 3, 5)
+    sample = OneHotCategorical(logits).rsample()
+    # Forward value is one-hot (up to the rounding of ``sample + probs - probs``).
+    hard = sample.detach().round()
+    torch.testing.assert_close(sample.detach(), hard)
+    assert torch.equal(hard.sum(-1), torch.ones(4, 3))
+    (grad_sample,) = torch.autograd.grad((weights * sample).sum(), logits)
+    (grad_probs,) = torch.autograd.grad((weights * torch.softmax(logits, -1)).sum(), logits)
+    torch.testing.assert_close(grad_sample, grad_probs)
+
+
+def test_one_hot_samples_follow_the_probabilities() -> None:
+    logits = torch.log(torch.tensor([0.1, 0.2, 0.7])).expand(20000, 1, 3)
+    freq = OneHotCategorical(logits).rsample().detach().mean(dim=(0, 1))
+    torch.testing.assert_close(freq, torch.tensor([0.1, 0.2, 0.7]), atol=0.02, rtol=0)
+
+
+def test_categorical_kl_matches_definition_and_is_zero_for_equal() -> None:
+    p, q = torch.randn(2, 4, 6), torch.randn(2, 4, 6)
+    lp, lq = F.log_softmax(p, -1), F.log_softmax(q, -1)
+    expected = (lp.exp() * (lp - lq)).sum(dim=(-2, -1))
+    torch.testing.assert_close(categorical_kl(p, q), expected)
+    torch.testing.assert_close(categorical_kl(p, p), torch.zeros(2), atol=1e-6, rtol=0)
+
+
+def test_unit_gaussian_and_bernoulli_log_probs() -> None:
+    mean, value = torch.randn(3, 2, 4), torch.randn(3, 2, 4)
+    torch.testing.assert_close(
+        UnitGaussian(mean, event_dims=2).log_prob(value), -0.5 * ((value - mean) ** 2).sum((1, 2))
+    )
+    logits, target = torch.randn(5), torch.tensor([0.0, 1.0, 1.0, 0.0, 0.5])
+    p = torch.sigmoid(logits)
+    torch.testing.assert_close(Bernoulli(logits).log_prob(target), target * p.log() + (1 - target) * (1 - p).log())
+
+
+def _grid(n: int = 20001) -> tuple[torch.Tensor, float]:
+    x = torch.linspace(-1 + 1e-6, 1 - 1e-6, n, dtype=torch.float64)
+    return x, float(x[1] - x[0])
+
+
+def test_truncated_normal_density_entropy_and_mean_match_numerical_integrals() -> None:
+    loc, scale = torch.tensor([[0.7]], dtype=torch.float64), torch.tensor([[0.4]], dtype=torch.float64)
+    dist = TruncatedNormal(loc, scale)
+    x, dx = _grid()
+    log_p = torch.stack([dist.log_prob(v.reshape(1, 1)) for v in x[::20]]).squeeze()
+    density = log_p.exp()
+    step = dx * 20
+    assert abs(float(density.sum() * step) - 1.0) < 2e-3
+    assert abs(float(-(density * log_p).sum() * step) - float(dist.entropy())) < 5e-3
+    assert abs(float((density * x[::20]).sum() * step) - float(dist.mean)) < 5e-3
+
+
+def test_truncated_normal_samples_stay_in_bounds_and_are_reparameterised() -> None:
+    loc = torch.tensor([-0.95, 0.0, 0.95]).repeat(4000, 1).requires_grad_()
+    scale = torch.full((4000, 3), 0.5, requires_grad=True)
+    dist = TruncatedNormal(loc, scale)
+    sample = dist.rsample()
+    assert sample.min() > -1 and sample.max() < 1
+    torch.testing.assert_close(sample.detach().mean(0), dist.mean[0].detach(), atol=0.03, rtol=0)
+    sample.sum().backward()
+    assert loc.grad is not None and loc.grad.abs().min() > 0
+    assert scale.grad is not None and scale.grad.abs().sum() > 0
+    assert torch.equal(dist.mode, loc.detach())
+
+
+def test_tanh_normal_density_integrates_to_one_and_matches_samples() -> None:
+    dist = TanhNormal(torch.tensor([[0.3]], dtype=torch.float64), torch.tensor([[0.6]], dtype=torch.float64))
+    x, dx = _grid()
+    density = torch.stack([dist.log_prob(v.reshape(1, 1)) for v in x[::20]]).squeeze().exp()
+    assert abs(float(density.sum() * dx * 20) - 1.0) < 5e-3
+    big = TanhNormal(torch.full((20000, 1), 0.3), torch.full((20000, 1), 0.6))
+    samples = big.rsample()
+    numeric_mean = float((density * x[::20]).sum() * dx * 20)
+    assert abs(float(samples.mean()) - numeric_mean) < 0.02
+    assert math.isfinite(float(big.entropy().mean()))

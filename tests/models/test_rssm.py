@@ -1,0 +1,67 @@
+"""The RSSM: state shapes, episode resets, unimix and the straight-through latent."""
+
+from __future__ import annotations
+
+import torch
+
+from coworld.config import Config
+from coworld.models.rssm import RSSM
+
+
+def _rssm(tiny: Config, unimix: float = 0.0) -> RSSM:
+    wm = tiny.world_model
+    return RSSM(
+        embed_size=10,
+        action_size=3,
+        deter=wm.deter,
+        hidden=wm.hidden,
+        stoch=wm.stoch,
+        classes=wm.classes,
+        unimix=unimix,
+    )
+
+
+def test_observe_shapes(tiny: Config) -> None:
+    rssm = _rssm(tiny)
+    wm = tiny.world_model
+    is_first = torch.zeros(2, 6, dtype=torch.bool)
+    is_first[:, 0] = True
+    post, prior = rssm.observe(torch.randn(2, 6, 10), torch.randn(2, 6, 3), is_first)
+    for state in (post, prior):
+        assert state["deter"].shape == (2, 6, wm.deter)
+        assert state["logits"].shape == (2, 6, wm.stoch, wm.classes)
+        assert state["stoch"].shape == (2, 6, wm.stoch, wm.classes)
+    assert rssm.features(post).shape == (2, 6, wm.deter + wm.stoch * wm.classes) == (2, 6, rssm.feat_size)
+    # Posterior and prior share the deterministic state; logits are normalised log-probabilities.
+    assert torch.equal(post["deter"], prior["deter"])
+    torch.testing.assert_close(post["logits"].exp().sum(-1), torch.ones(2, 6, wm.stoch))
+
+
+def test_is_first_resets_state_and_action(tiny: Config) -> None:
+    rssm = _rssm(tiny)
+    embed = torch.randn(3, 10)
+    garbage = {key: torch.randn_like(value) for key, value in rssm.initial(3).items()}
+    action = torch.randn(3, 3)
+    is_first = torch.tensor([True, False, True])
+    post, _ = rssm.obs_step(garbage, action, embed, is_first, sample=False)
+    fresh, _ = rssm.obs_step(rssm.initial(3), torch.zeros(3, 3), embed, sample=False)
+    for key in post:
+        torch.testing.assert_close(post[key][is_first], fresh[key][is_first])
+        assert not torch.allclose(post[key][1], fresh[key][1])
+
+
+def test_unimix_puts_a_floor_under_class_probabilities(tiny: Config) -> None:
+    rssm = _rssm(tiny, unimix=0.1)
+    rssm.img_out[-1].weight.data.mul_(100.0)  # very peaked raw logits
+    prior = rssm.img_step(rssm.initial(4), torch.randn(4, 3))
+    probs = prior["logits"].detach().exp()
+    assert float(probs.min()) >= 0.1 / tiny.world_model.classes - 1e-6
+    torch.testing.assert_close(probs.sum(-1), torch.ones(4, tiny.world_model.stoch))
+
+
+def test_latent_sample_passes_gradient_to_the_representation(tiny: Config) -> None:
+    rssm = _rssm(tiny)
+    embed = torch.randn(2, 10, requires_grad=True)
+    post, _ = rssm.obs_step(rssm.initial(2), torch.zeros(2, 3), embed)
+    (post["stoch"] * torch.randn_like(post["stoch"])).sum().backward()
+    assert embed.grad is not None and embed.grad.abs().sum() > 0
