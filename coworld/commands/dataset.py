@@ -1,0 +1,101 @@
+"""``coworld dataset``: inspect (info), check (verify) and merge offline datasets."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+import click
+
+from coworld.data import CODECS, QUALITIES, merge_datasets, open_dataset, verify_dataset
+
+
+@click.group()
+def dataset() -> None:
+    """Inspect, check and merge offline datasets (HDF5, format v1)."""
+
+
+@dataset.command()
+@click.argument("path", type=click.Path(path_type=Path))
+@click.option("--json", "as_json", is_flag=True, help="Print the summary as one JSON object.")
+def info(path: Path, as_json: bool) -> None:
+    """Episodes, steps, returns, normalized score, size on disk and metadata of the dataset at PATH."""
+    with open_dataset(path) as data:
+        summary = data.summary()
+    if as_json:
+        click.echo(json.dumps(summary, indent=2, sort_keys=True))
+        return
+    for key, value in _info_lines(summary):
+        click.echo(f"{key:<12}{value}")
+
+
+def _info_lines(s: dict[str, Any]) -> list[tuple[str, str]]:
+    ret, length, norm = s["return"], s["length"], s["normalized_score"]
+    lines = [
+        ("path", s["path"]),
+        ("format", f"coworld-dataset v{s['format_version']}"),
+        ("task", s["task"]),
+        ("quality", s["quality"]),
+        ("complete", "yes" if s["complete"] else "no (interrupted or still being written; resume to finish)"),
+        ("episodes", f"{s['episodes']:,} ({s['terminated_episodes']:,} terminated, the rest cut by a time limit)"),
+        ("steps", f"{s['steps']:,} rows, {s['frames']:,} frames with each episode's final frame"),
+        ("return", _stats_text(ret, ".1f")),
+        ("length", _stats_text(length, ".0f")),
+        ("normalized", _stats_text(norm, ".1f") if norm else "unknown (no reference returns in the metadata)"),
+    ]
+    ratio = s["compression_ratio"]
+    lines.append(
+        (
+            "size",
+            f"{_mb(s['file_bytes'])} on disk; frames {_mb(s['frame_bytes_raw'])} raw -> "
+            f"{_mb(s['frame_bytes_stored'])} stored ({s['compression']}, ratio {ratio:.1f}x)",
+        )
+    )
+    for key in ("reference", "env_config", "collector", "versions"):
+        lines.append((key, json.dumps(s[key], sort_keys=True)))
+    lines += [("created", str(s["created"])), ("updated", str(s["updated"]))]
+    return lines
+
+
+def _stats_text(stats: dict[str, float], fmt: str) -> str:
+    return "  ".join(f"{name} {stats[name]:{fmt}}" for name in ("mean", "std", "min", "max"))
+
+
+def _mb(n: int) -> str:
+    return f"{n / 2**20:,.1f} MiB"
+
+
+@dataset.command()
+@click.argument("path", type=click.Path(path_type=Path))
+def verify(path: Path) -> None:
+    """Check schema, shapes, dtypes, episode boundaries, finite values, checksums and the complete flag.
+
+    Prints 'ok' and exits 0, or lists the problems and exits 1.
+    """
+    problems = verify_dataset(path, progress=sys.stderr.isatty())
+    if not problems:
+        click.echo(f"{path}: ok")
+        return
+    for problem in problems:
+        click.echo(f"{path}: {problem}")
+    click.echo(f"{path}: {len(problems)} problem{'s' if len(problems) > 1 else ''}")
+    sys.exit(1)
+
+
+@dataset.command()
+@click.argument("inputs", nargs=-1, required=True, type=click.Path(path_type=Path))
+@click.option("--out", required=True, type=click.Path(path_type=Path), help="The merged dataset to write.")
+@click.option(
+    "--quality",
+    type=click.Choice(QUALITIES),
+    help="Quality of the merge (default: the inputs' shared one, or medium-expert for medium(-replay) + expert).",
+)
+@click.option("--force", is_flag=True, help="Overwrite --out if it exists.")
+@click.option("--compression", type=click.Choice(CODECS), default="gzip", show_default=True, help="Frame codec.")
+def merge(inputs: tuple[Path, ...], out: Path, quality: str | None, force: bool, compression: str) -> None:
+    """Merge datasets of one task, in order, into a new dataset (e.g. medium-replay + expert = medium-expert)."""
+    merge_datasets(list(inputs), out, quality=quality, force=force, compression=compression, progress=True)
+    with open_dataset(out) as data:
+        click.echo(f"wrote {out}: {data.quality}, {data.num_episodes:,} episodes, {data.num_steps:,} steps")

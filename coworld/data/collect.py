@@ -1,0 +1,298 @@
+"""Collect datasets by running a policy in vectorised environments and writing each episode as soon as it ends.
+
+:func:`run_collection` is the policy-agnostic loop (any ``policy(obs, is_first) -> (actions, log_prob)``);
+:func:`collect_random` builds a ``random``-quality dataset with :class:`UniformPolicy`. Both stop at an exact budget
+(episodes, or rows with the last episode cut as a timeout) and resume a partial dataset where it stopped.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import h5py
+import numpy as np
+from tqdm import tqdm
+
+from coworld.data.reader import open_dataset
+from coworld.data.writer import DatasetWriter
+from coworld.errors import ConfigError, DatasetError
+
+# policy(obs (W, H, W, C) uint8, is_first (W,) bool) -> (actions (W, A) float32, log_prob (W,) float32 or None)
+Policy = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray | None]]
+
+
+@dataclass(frozen=True)
+class Budget:
+    """How much to collect: exactly ``episodes`` episodes, or exactly ``steps`` rows (give one)."""
+
+    episodes: int | None = None
+    steps: int | None = None
+
+    def __post_init__(self) -> None:
+        if (self.episodes is None) == (self.steps is None):
+            raise ConfigError("give exactly one of --episodes and --max-steps")
+        amount = self.episodes if self.episodes is not None else self.steps
+        if amount is None or amount < 1:
+            raise ConfigError(f"the collection budget must be >= 1, got {amount}")
+
+    def reached(self, writer: DatasetWriter) -> bool:
+        if self.episodes is not None:
+            return writer.num_episodes >= self.episodes
+        return writer.num_steps >= (self.steps or 0)
+
+    def describe(self) -> str:
+        return f"{self.episodes} episodes" if self.episodes is not None else f"{self.steps} steps"
+
+
+@dataclass(frozen=True)
+class CollectSummary:
+    """What a collection left on disk."""
+
+    path: Path
+    episodes: int
+    steps: int
+    mean_return: float
+    env_steps: int
+    """Environment steps taken by this run (including episodes in flight when the budget was met)."""
+    seconds: float
+
+
+class UniformPolicy:
+    """Actions drawn uniformly from the box ``[low, high]`` (A,), with their (constant) log-probability."""
+
+    def __init__(self, low: np.ndarray, high: np.ndarray, seed: int) -> None:
+        self.low = np.asarray(low, np.float32)
+        self.high = np.asarray(high, np.float32)
+        self._rng = np.random.default_rng(seed)
+        self._log_prob = -float(np.log(self.high.astype(np.float64) - self.low).sum())
+
+    def __call__(self, obs: np.ndarray, is_first: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        n = len(obs)
+        actions = self._rng.uniform(self.low, self.high, size=(n, len(self.low))).astype(np.float32)
+        return actions, np.full(n, self._log_prob, np.float32)
+
+
+@dataclass
+class _Episode:
+    """One environment's episode in flight: frames o_0 .. o_t and the t rows so far."""
+
+    frames: list[np.ndarray]
+    actions: list[np.ndarray] = field(default_factory=list)
+    rewards: list[float] = field(default_factory=list)
+    infos: dict[str, list[Any]] = field(default_factory=dict)
+
+    def add(self, action: np.ndarray, reward: float, frame: np.ndarray, infos: dict[str, Any]) -> None:
+        """Row t: ``action`` taken at the last frame earned ``reward`` and led to ``frame``."""
+        self.actions.append(np.asarray(action, np.float32))
+        self.rewards.append(float(reward))
+        self.frames.append(np.asarray(frame))
+        for name, value in infos.items():
+            self.infos.setdefault(name, []).append(value)
+
+    def __len__(self) -> int:
+        return len(self.actions)
+
+
+def run_collection(
+    envs: Any,
+    policy: Policy,
+    writer: DatasetWriter,
+    budget: Budget,
+    *,
+    seed: int,
+    progress: bool = True,
+    expected_length: int | None = None,
+) -> int:
+    """Step a gymnasium VectorEnv with ``policy`` until ``budget`` is met, writing each episode whole as it ends.
+
+    Per-step infos recorded: ``success`` when the environment reports it, ``behavior_log_prob`` when the policy
+    returns one. With a step budget the episode that crosses it is cut to fit and stored as a timeout. Returns the
+    number of environment steps taken, which are also added to the ``steps`` field of the collector metadata.
+    """
+    from gymnasium.vector import AutoresetMode
+
+    mode = AutoresetMode(envs.metadata.get("autoreset_mode", AutoresetMode.NEXT_STEP))
+    if mode == AutoresetMode.DISABLED:
+        raise ConfigError("collection needs a vector env that resets itself (autoreset_mode next_step or same_step)")
+    n_envs = int(envs.num_envs)
+    obs, _ = envs.reset(seed=seed)
+    episodes = [_Episode([np.asarray(obs[i])]) for i in range(n_envs)]
+    resetting = np.zeros(n_envs, bool)  # NEXT_STEP mode: the next step() only resets these envs
+    is_first = np.ones(n_envs, bool)
+    record_success: bool | None = None  # decided by the first step's info
+    returns = list(writer.returns())
+    total = budget.steps if budget.steps is not None else (budget.episodes or 0) * (expected_length or 0) or None
+    env_steps = 0
+    try:
+        with tqdm(total=total, initial=writer.num_steps, unit="step", disable=not progress, dynamic_ncols=True) as bar:
+            while not budget.reached(writer):
+                actions, log_prob = policy(obs, is_first)
+                obs, rewards, terminated, truncated, info = envs.step(actions)
+                for i in range(n_envs):
+                    if resetting[i]:  # this step only reset env i: o_0 of its next episode
+                        episodes[i], resetting[i], is_first[i] = _Episode([np.asarray(obs[i])]), False, True
+                        continue
+                    done = bool(terminated[i] or truncated[i])
+                    # SAME_STEP mode returns the next episode's o_0 at once; the final frame and info come apart.
+                    final = done and mode == AutoresetMode.SAME_STEP
+                    step_info = info["final_info"] if final else info
+                    if record_success is None:
+                        record_success = "success" in step_info
+                    extras: dict[str, Any] = {}
+                    if record_success:
+                        extras["success"] = bool(_info_value(step_info, "success", i, False))
+                    if log_prob is not None:
+                        extras["behavior_log_prob"] = float(log_prob[i])
+                    episodes[i].add(actions[i], rewards[i], info["final_obs"][i] if final else obs[i], extras)
+                    is_first[i] = False
+                    env_steps += 1
+                    if not done:
+                        continue
+                    if not budget.reached(writer):
+                        _write(writer, episodes[i], bool(terminated[i]), budget)
+                        returns.append(float(writer.returns()[-1]))
+                        bar.set_postfix(episodes=writer.num_episodes, mean_return=f"{np.mean(returns):.1f}")
+                    if mode == AutoresetMode.NEXT_STEP:
+                        resetting[i] = True
+                    else:
+                        episodes[i], is_first[i] = _Episode([np.asarray(obs[i])]), True
+                in_flight = sum(len(ep) for ep, r in zip(episodes, resetting, strict=True) if not r)
+                position = writer.num_steps + in_flight
+                bar.update(max(0, min(position, total or position) - bar.n))
+    finally:  # the environment steps taken, also when interrupted
+        steps = int(writer.metadata["collector"].get("steps") or 0) + env_steps
+        writer.update_metadata(steps=steps)
+    return env_steps
+
+
+def _info_value(info: dict[str, Any], key: str, i: int, default: Any) -> Any:
+    """Entry ``i`` of a vector env's info key, or ``default`` where the env did not report it."""
+    if key not in info or not info.get(f"_{key}", np.ones(i + 1, bool))[i]:
+        return default
+    return info[key][i]
+
+
+def _write(writer: DatasetWriter, ep: _Episode, terminated: bool, budget: Budget) -> None:
+    """Store a finished episode, cut to the remaining step budget (as a timeout) if it would cross it."""
+    t = len(ep)
+    if budget.steps is not None and writer.num_steps + t > budget.steps:
+        t, terminated = budget.steps - writer.num_steps, False
+    dtypes = {"success": bool, "behavior_log_prob": np.float32}
+    infos = {name: np.asarray(values[:t], dtypes.get(name)) for name, values in ep.infos.items()}
+    writer.add_episode(
+        np.stack(ep.frames[: t + 1]), np.stack(ep.actions[:t]), np.asarray(ep.rewards[:t]), terminated, infos
+    )
+
+
+def collect_random(
+    task: str,
+    out: str | Path | None = None,
+    *,
+    episodes: int | None = None,
+    max_steps: int | None = None,
+    seed: int = 0,
+    workers: int = 1,
+    resume: bool = False,
+    force: bool = False,
+    compression: str = "gzip",
+    progress: bool = True,
+) -> CollectSummary:
+    """Collect a ``random``-quality dataset of ``task`` with uniformly random actions.
+
+    Writes to ``out`` (default ``datasets/<task>-random.h5``). ``resume`` continues a partial dataset up to the
+    budget (a complete one that already meets it is refused); ``force`` replaces an existing file.
+    """
+    from coworld import envs as coworld_envs
+    from coworld.envs.registry import resolve_settings
+
+    budget = Budget(episodes=episodes, steps=max_steps)
+    if workers < 1:
+        raise ConfigError(f"--workers must be >= 1, got {workers}")
+    spec = coworld_envs.task_spec(task)
+    path = Path(out) if out is not None else Path("datasets") / f"{task}-random.h5"
+    env_config = {**dataclasses.asdict(spec), **dataclasses.asdict(resolve_settings(spec, {}))}
+    reference = {"random_return": spec.random_return, "reference_return": spec.reference_return}
+    collector = {"algorithm": "random", "policy": "uniform", "preset": None, "seed": seed, "workers": workers}
+    collector.update(steps=0, last_eval_return=None)
+    created = force or not path.exists()
+    writer = DatasetWriter(
+        path,
+        task=task,
+        env_config=env_config,
+        quality="random",
+        collector=collector,
+        action_size=spec.action_size,
+        resume=resume,
+        force=force,
+        reference={k: v for k, v in reference.items() if v is not None},
+        compression=compression,
+    )
+    try:
+        with writer:
+            return _collect_random_into(writer, budget, coworld_envs.make_vector, spec, seed, workers, progress)
+    except BaseException:
+        if created and _holds_no_episodes(path):  # a collection that stored nothing leaves no file behind
+            path.unlink(missing_ok=True)
+        raise
+
+
+def _collect_random_into(
+    writer: DatasetWriter,
+    budget: Budget,
+    make_vector: Callable[..., Any],
+    spec: Any,
+    seed: int,
+    workers: int,
+    progress: bool,
+) -> CollectSummary:
+    start = time.perf_counter()
+    if budget.reached(writer):
+        if writer.complete:
+            raise DatasetError(
+                f"{writer.path} is already complete with {writer.num_episodes} episodes ({writer.num_steps} steps), "
+                f"which meets {budget.describe()}; ask for more or pass --force to collect it again"
+            )
+        writer.close(complete=True)  # the collection stopped after its last episode, before marking it done
+        return _summary(writer.path, 0, start)
+    # A resumed run draws fresh episodes: its seed mixes in how many episodes already exist.
+    run_seed = seed
+    if writer.num_episodes:
+        run_seed = int(np.random.SeedSequence([seed, writer.num_episodes]).generate_state(1)[0])
+    envs = make_vector(spec.name, workers, run_seed)
+    try:
+        space = envs.single_action_space
+        if tuple(space.shape) != (spec.action_size,):
+            raise DatasetError(f"{spec.name}: env action shape {space.shape} != task spec ({spec.action_size},)")
+        policy = UniformPolicy(space.low, space.high, run_seed)
+        env_steps = run_collection(
+            envs, policy, writer, budget, seed=run_seed, progress=progress, expected_length=spec.episode_length
+        )
+    finally:
+        envs.close()
+    writer.close(complete=True)
+    return _summary(writer.path, env_steps, start)
+
+
+def _holds_no_episodes(path: Path) -> bool:
+    try:
+        with h5py.File(path, "r") as f:
+            return int(f.attrs.get("num_episodes", 0)) == 0
+    except OSError:
+        return False
+
+
+def _summary(path: Path, env_steps: int, start: float) -> CollectSummary:
+    with open_dataset(path) as data:
+        return CollectSummary(
+            path=path,
+            episodes=data.num_episodes,
+            steps=data.num_steps,
+            mean_return=float(data.returns.mean()),
+            env_steps=env_steps,
+            seconds=time.perf_counter() - start,
+        )

@@ -1,0 +1,162 @@
+"""`coworld dataset info | verify | merge`, through click and as a real process."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+from types import ModuleType
+from typing import Any
+
+import h5py
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from coworld.cli import main
+from coworld.data import open_dataset
+
+COWORLD = [sys.executable, "-c", "from coworld.cli import main; main()"]
+
+
+def test_info_reports_counts_returns_scores_and_size(dataset_path: Path, episodes: list[dict[str, Any]]) -> None:
+    result = CliRunner().invoke(main, ["dataset", "info", str(dataset_path)])
+    assert result.exit_code == 0, result.output
+    lines = dict(line.split(None, 1) for line in result.stdout.splitlines())
+    returns = np.array([ep["rewards"].astype(np.float64).sum() for ep in episodes])
+    assert lines["episodes"].startswith("7 (3 terminated")
+    assert lines["steps"].startswith(f"{sum(len(ep['rewards']) for ep in episodes)} rows")
+    assert lines["return"].split()[:2] == ["mean", f"{returns.mean():.1f}"]
+    assert lines["normalized"].split()[:2] == ["mean", f"{10 * returns.mean():.1f}"]
+    assert "on disk" in lines["size"] and "gzip, ratio" in lines["size"]
+    assert json.loads(lines["env_config"])["action_repeat"] == 2
+    assert lines["complete"] == "yes" and lines["quality"] == "random"
+
+
+def test_info_json_is_the_summary(dataset_path: Path) -> None:
+    result = CliRunner().invoke(main, ["dataset", "info", "--json", str(dataset_path)])
+    assert result.exit_code == 0, result.output
+    with open_dataset(dataset_path) as data:
+        assert json.loads(result.stdout) == json.loads(json.dumps(data.summary()))
+
+
+def test_verify_ok(dataset_path: Path) -> None:
+    result = CliRunner().invoke(main, ["dataset", "verify", str(dataset_path)])
+    assert result.exit_code == 0 and result.stdout.strip() == f"{dataset_path}: ok"
+
+
+def _flip_a_pixel(path: Path) -> None:
+    with h5py.File(path, "r+") as f:
+        frame = f["observations"][20]
+        frame[30, 30, 0] ^= 0xFF
+        f["observations"][20] = frame
+
+
+def _nan_and_incomplete(path: Path) -> None:
+    with h5py.File(path, "r+") as f:
+        f["rewards"][0] = np.nan
+        f.attrs["complete"] = False
+
+
+@pytest.mark.parametrize(
+    ("damage", "findings"),
+    [
+        (_flip_a_pixel, ["1 episodes: checksum mismatch (data damaged): 2"]),
+        (_nan_and_incomplete, ["1 rewards are NaN or inf", "not complete"]),
+        (lambda p: p.write_bytes(p.read_bytes()[:5000]), ["not a readable HDF5 file"]),
+    ],
+)
+def test_verify_lists_findings_and_exits_1(
+    tmp_path: Path, dataset_path: Path, helpers: ModuleType, damage: Any, findings: list[str]
+) -> None:
+    path = tmp_path / "damaged.h5"
+    shutil.copy(dataset_path, path)
+    damage(path)
+    before = helpers.file_state(path)
+    result = CliRunner().invoke(main, ["dataset", "verify", str(path)])
+    assert result.exit_code == 1
+    for finding in findings:
+        assert any(finding in line for line in result.stdout.splitlines()), result.stdout
+    assert result.stdout.splitlines()[-1].endswith("problem" + ("s" if len(findings) > 1 else ""))
+    assert helpers.file_state(path) == before
+
+
+@pytest.mark.parametrize("damage", ["not hdf5", "missing key", "nan rewards", "truncated"])
+def test_info_on_a_bad_file_is_one_line_exit_2_and_touches_nothing(
+    tmp_path: Path, dataset_path: Path, helpers: ModuleType, damage: str
+) -> None:
+    path = tmp_path / "bad.h5"
+    shutil.copy(dataset_path, path)
+    if damage == "not hdf5":
+        path.write_text("hello")
+    elif damage == "truncated":
+        path.write_bytes(path.read_bytes()[:-4096])
+    else:
+        with h5py.File(path, "r+") as f:
+            if damage == "missing key":
+                del f["rewards"]
+            else:
+                f["rewards"][1] = np.nan
+    before = helpers.file_state(path)
+    result = CliRunner().invoke(main, ["dataset", "info", str(path)])
+    assert result.exit_code == 2
+    assert result.stdout == "" and len(result.stderr.splitlines()) == 1
+    assert result.stderr.startswith(f"error: {path}: ") and "Traceback" not in result.stderr
+    assert helpers.file_state(path) == before
+
+
+def test_merge_concatenates_episodes_and_names_the_quality(tmp_path: Path, helpers: ModuleType) -> None:
+    a_eps, b_eps = helpers.make_episodes([6, 9], seed=1), helpers.make_episodes([4, 7, 5], seed=2, first_id=2)
+    a = helpers.write_dataset(tmp_path / "a.h5", a_eps, quality="medium-replay")
+    b = helpers.write_dataset(tmp_path / "b.h5", b_eps, quality="expert")
+    out = tmp_path / "me.h5"
+    result = CliRunner().invoke(main, ["dataset", "merge", str(a), str(b), "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    assert "medium-expert, 5 episodes, 31 steps" in result.stdout
+    with open_dataset(out) as data:
+        assert data.quality == "medium-expert" and data.complete
+        for i, ep in enumerate(a_eps + b_eps):
+            got = data.episode(i)
+            np.testing.assert_array_equal(got["image"], ep["observations"])
+            np.testing.assert_array_equal(got["action"][1:], ep["actions"])
+            assert got["is_terminal"][-1] == ep["terminated"]
+            np.testing.assert_array_equal(got["success"][1:], ep["infos"]["success"])
+        sources = data.metadata["collector"]["sources"]
+        assert [s["quality"] for s in sources] == ["medium-replay", "expert"]
+    assert CliRunner().invoke(main, ["dataset", "verify", str(out)]).exit_code == 0
+
+
+def test_merge_refusals(tmp_path: Path, helpers: ModuleType) -> None:
+    eps = helpers.make_episodes([5, 6])
+    a = helpers.write_dataset(tmp_path / "a.h5", eps, quality="random")
+    b = helpers.write_dataset(tmp_path / "b.h5", eps, quality="expert")
+    other = helpers.write_dataset(tmp_path / "o.h5", eps, quality="random", task="other_task")
+    runner = CliRunner()
+    cases = [
+        ([a, other], "task and env config must match"),
+        ([a, b], "say which quality the merge has with --quality"),
+        ([a, a], "the output"),
+    ]
+    for inputs, message in cases:
+        out = inputs[0] if message == "the output" else tmp_path / "m.h5"
+        result = runner.invoke(main, ["dataset", "merge", *map(str, inputs), "--out", str(out)])
+        assert result.exit_code == 2 and message in result.stderr, result.stderr
+    assert not (tmp_path / "m.h5").exists()
+    result = runner.invoke(main, ["dataset", "merge", str(a), str(b), "--out", str(tmp_path / "m.h5"), "--quality",
+                                  "medium-expert"])  # fmt: skip
+    assert result.exit_code == 0, result.output
+
+
+def test_real_process_exit_codes(dataset_path: Path, tmp_path: Path) -> None:
+    ok = subprocess.run([*COWORLD, "dataset", "verify", str(dataset_path)], capture_output=True, text=True)
+    assert ok.returncode == 0 and ok.stdout.strip().endswith(": ok")
+    info = subprocess.run([*COWORLD, "dataset", "info", "--json", str(dataset_path)], capture_output=True, text=True)
+    assert info.returncode == 0 and json.loads(info.stdout)["episodes"] == 7
+    bad = tmp_path / "bad.h5"
+    bad.write_bytes(b"\x89HDF\r\n\x1a\n" + b"\0" * 100)
+    result = subprocess.run([*COWORLD, "dataset", "info", str(bad)], capture_output=True, text=True)
+    assert result.returncode == 2 and result.stderr.count("\n") == 1 and "Traceback" not in result.stderr
+    result = subprocess.run([*COWORLD, "dataset", "verify", str(bad)], capture_output=True, text=True)
+    assert result.returncode == 1 and "not a readable HDF5 file" in result.stdout
