@@ -39,7 +39,34 @@ def _collect_random(options: dict[str, Any]) -> None:
 
 
 def _collect_dreamerv2(options: dict[str, Any]) -> None:
-    raise CoworldError("--policy dreamerv2 is not available yet; use --policy random")
+    from coworld.data.collect import default_dataset_path
+    from coworld.training.collect import collect_dreamerv2
+
+    if options["workers"] != 1:
+        raise CoworldError("--workers sets random collection; for dreamerv2 use --set train.envs=N")
+    quality = options["quality"] or "medium-replay"
+    out = options["out"] or default_dataset_path(options["task"], quality)
+    summary = collect_dreamerv2(
+        options["task"],
+        out,
+        quality=quality,
+        preset=options["preset"],
+        overrides=options["overrides"],
+        max_steps=options["max_steps"],
+        stop_return=options["stop_return"],
+        episodes=options["episodes"] or 10,
+        seed=options["seed"],
+        device=options["device"],
+        resume=options["resume"],
+        force=options["force"],
+        compression=options["compression"],
+        progress=not options["quiet"],
+    )
+    last = "none" if summary.last_eval_return is None else f"{summary.last_eval_return:.1f}"
+    click.echo(
+        f"wrote {summary.path}: {summary.episodes:,} episodes, {summary.steps:,} steps ({quality});"
+        f" stopped on {summary.stop_reason}; last evaluation return {last}"
+    )
 
 
 # --policy name -> collector
@@ -52,8 +79,28 @@ COLLECTORS: dict[str, Callable[[dict[str, Any]], None]] = {
 @click.command()
 @click.option("--task", required=True, help="Task name (see `coworld tasks`).")
 @click.option(
-    "--policy", type=click.Choice(sorted(COLLECTORS)), default="random", show_default=True, help="Behaviour policy."
+    "--policy",
+    type=click.Choice(sorted(COLLECTORS)),
+    default="dreamerv2",
+    show_default=True,
+    help="dreamerv2: train DreamerV2 online and record it (medium-replay etc.); random: uniform actions.",
 )
+@click.option(
+    "--quality",
+    type=click.Choice(["medium-replay", "medium", "expert"]),
+    default=None,
+    help="dreamerv2 only: medium-replay (all it experienced while learning; default) or episodes of the"
+    " trained policy (medium, expert; --episodes of them).",
+)
+@click.option("--preset", default="paper", show_default=True, help="dreamerv2 only: tiny (CPU) or paper.")
+@click.option(
+    "--stop-return",
+    type=float,
+    default=None,
+    help="dreamerv2 only: stop training once evaluation reaches this [default: 1/3 of the task's reference].",
+)
+@click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE", help="dreamerv2 only: config override.")
+@click.option("--device", type=click.Choice(["auto", "cpu", "cuda"]), default="auto", show_default=True)
 @click.option("--episodes", type=click.IntRange(min=1), help="Collect exactly this many episodes.")
 @click.option("--max-steps", type=click.IntRange(min=1), help="Collect exactly this many steps (rows).")
 @click.option("--out", type=click.Path(path_type=Path), help="Dataset file [default: datasets/<task>-<quality>.h5].")
@@ -64,5 +111,12 @@ COLLECTORS: dict[str, Callable[[dict[str, Any]], None]] = {
 @click.option("--compression", type=click.Choice(CODECS), default="gzip", show_default=True, help="Frame codec.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 def collect(**options: Any) -> None:
-    """Collect an offline dataset of TASK with a behaviour policy; each episode is written as soon as it ends."""
+    """Collect an offline dataset of TASK; each episode is written as soon as it ends.
+
+    By default DreamerV2 learns online in TASK and everything it experiences becomes a medium-replay dataset,
+    until its evaluation return reaches --stop-return or --max-steps rows exist. With --policy random, uniform
+    actions make a random-quality dataset. Killed, rerun with --resume to continue.
+    """
+    if options["policy"] == "random" and options["quality"] is not None:
+        raise CoworldError("--quality is for --policy dreamerv2; random collection makes a 'random' dataset")
     COLLECTORS[options["policy"]](options)

@@ -189,6 +189,22 @@ def _write(writer: DatasetWriter, ep: _Episode, terminated: bool, budget: Budget
     )
 
 
+def default_dataset_path(task: str, quality: str) -> Path:
+    """``datasets/<task>-<quality>.h5``, the quality's dashes as underscores (``walker_uphill-medium_replay.h5``)."""
+    return Path("datasets") / f"{task}-{quality.replace('-', '_')}.h5"
+
+
+def dataset_fields(task: str) -> dict[str, Any]:
+    """The writer's ``env_config`` (task spec and resolved env settings) and ``reference`` returns for ``task``."""
+    from coworld import envs as coworld_envs
+    from coworld.envs.registry import resolve_settings
+
+    spec = coworld_envs.task_spec(task)
+    env_config = {**dataclasses.asdict(spec), **dataclasses.asdict(resolve_settings(spec, {}))}
+    reference = {"random_return": spec.random_return, "reference_return": spec.reference_return}
+    return {"env_config": env_config, "reference": {k: v for k, v in reference.items() if v is not None}}
+
+
 def collect_random(
     task: str,
     out: str | Path | None = None,
@@ -208,28 +224,26 @@ def collect_random(
     budget (a complete one that already meets it is refused); ``force`` replaces an existing file.
     """
     from coworld import envs as coworld_envs
-    from coworld.envs.registry import resolve_settings
 
     budget = Budget(episodes=episodes, steps=max_steps)
     if workers < 1:
         raise ConfigError(f"--workers must be >= 1, got {workers}")
     spec = coworld_envs.task_spec(task)
-    path = Path(out) if out is not None else Path("datasets") / f"{task}-random.h5"
-    env_config = {**dataclasses.asdict(spec), **dataclasses.asdict(resolve_settings(spec, {}))}
-    reference = {"random_return": spec.random_return, "reference_return": spec.reference_return}
+    path = Path(out) if out is not None else default_dataset_path(task, "random")
+    fields = dataset_fields(task)
     collector = {"algorithm": "random", "policy": "uniform", "preset": None, "seed": seed, "workers": workers}
     collector.update(steps=0, last_eval_return=None)
     created = force or not path.exists()
     writer = DatasetWriter(
         path,
         task=task,
-        env_config=env_config,
+        env_config=fields["env_config"],
         quality="random",
         collector=collector,
         action_size=spec.action_size,
         resume=resume,
         force=force,
-        reference={k: v for k, v in reference.items() if v is not None},
+        reference=fields["reference"],
         compression=compression,
     )
     try:

@@ -13,7 +13,6 @@ whole episode.
 
 from __future__ import annotations
 
-import dataclasses
 import shutil
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -25,6 +24,7 @@ import numpy as np
 from coworld import envs
 from coworld.config import make_config
 from coworld.data import DatasetWriter
+from coworld.data.collect import dataset_fields
 from coworld.errors import CoworldError, DatasetError
 from coworld.training.logger import Logger
 from coworld.training.online import OnlineTrainer
@@ -40,16 +40,6 @@ class DreamerCollectSummary:
     steps: int
     stop_reason: str
     last_eval_return: float | None
-
-
-def dataset_fields(task: str) -> dict[str, Any]:
-    """The writer's env_config and reference for ``task``."""
-    from coworld.envs.registry import resolve_settings
-
-    spec = envs.task_spec(task)
-    env_config = {**dataclasses.asdict(spec), **dataclasses.asdict(resolve_settings(spec, {}))}
-    reference = {"random_return": spec.random_return, "reference_return": spec.reference_return}
-    return {"env_config": env_config, "reference": {k: v for k, v in reference.items() if v is not None}}
 
 
 def default_stop_return(task: str) -> float | None:
@@ -95,7 +85,13 @@ def collect_dreamerv2(
     from coworld.agents.dreamerv2 import DreamerV2
 
     agent = DreamerV2(config=config, action_size=spec.action_size, device=resolve_device(config.device))
-    collector = {"algorithm": "dreamerv2", "preset": preset, "seed": seed, "run": str(run_dir), "stop_return": stop_return}
+    collector = {
+        "algorithm": "dreamerv2",
+        "preset": preset,
+        "seed": seed,
+        "run": str(run_dir),
+        "stop_return": stop_return,
+    }
     fields = dataset_fields(task)
     experience = out if quality == "medium-replay" else run_dir / "replay.h5"
     writer = DatasetWriter(
@@ -116,8 +112,12 @@ def collect_dreamerv2(
             result = trainer.run(max_steps=limit, stop_return=stop_return, progress=progress)
         finally:
             trainer.close()
-        writer.update_metadata(steps=result.steps, updates=result.updates, stop_reason=result.stop_reason,
-                               last_eval_return=result.last_eval_return)
+        writer.update_metadata(
+            steps=result.steps,
+            updates=result.updates,
+            stop_reason=result.stop_reason,
+            last_eval_return=result.last_eval_return,
+        )
         writer.close(complete=True)
     if quality == "medium-replay":
         return DreamerCollectSummary(out, result.episodes, result.steps, result.stop_reason, result.last_eval_return)
@@ -139,10 +139,22 @@ def _record_policy(
 ) -> DreamerCollectSummary:
     """Record ``episodes`` episodes of the trained policy (sampling its actions) into ``out``."""
     spec = envs.task_spec(task)
-    collector = {**collector, "training_steps": result.steps, "last_eval_return": result.last_eval_return,
-                 "stop_reason": result.stop_reason}
-    with DatasetWriter(out, task=task, quality=quality, collector=collector, action_size=spec.action_size,
-                       resume=resume, compression=compression, **fields) as writer:
+    collector = {
+        **collector,
+        "training_steps": result.steps,
+        "last_eval_return": result.last_eval_return,
+        "stop_reason": result.stop_reason,
+    }
+    with DatasetWriter(
+        out,
+        task=task,
+        quality=quality,
+        collector=collector,
+        action_size=spec.action_size,
+        resume=resume,
+        compression=compression,
+        **fields,
+    ) as writer:
         env = envs.make(task, seed=seed + 20_000 + writer.num_episodes)
         while writer.num_episodes < episodes:
             obs, _ = env.reset(seed=seed + 20_000 + writer.num_episodes)
@@ -157,9 +169,15 @@ def _record_policy(
                 if "success" in info:
                     successes.append(float(info["success"]))
             infos = {"success": np.asarray(successes, np.float32)} if successes else None
-            writer.add_episode(observations=np.stack(frames), actions=np.stack(actions),
-                               rewards=np.asarray(rewards, np.float32), terminated=terminated, infos=infos)
+            writer.add_episode(
+                observations=np.stack(frames),
+                actions=np.stack(actions),
+                rewards=np.asarray(rewards, np.float32),
+                terminated=terminated,
+                infos=infos,
+            )
         env.close()
         writer.close(complete=True)
-        return DreamerCollectSummary(out, writer.num_episodes, writer.num_steps, result.stop_reason,
-                                     result.last_eval_return)
+        return DreamerCollectSummary(
+            out, writer.num_episodes, writer.num_steps, result.stop_reason, result.last_eval_return
+        )

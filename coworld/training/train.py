@@ -14,6 +14,7 @@ from typing import Any
 
 from coworld import envs
 from coworld.config import Config, make_config
+from coworld.data.collect import default_dataset_path
 from coworld.errors import CoworldError, DatasetError
 
 ALGOS = ("coworld", "dreamerv2", "curl", "curl-cql")
@@ -25,11 +26,6 @@ CHECKPOINT_KINDS = {
     "curl": "curl",
     "curl-cql": "curl-cql",
 }
-
-
-def default_dataset(target: str, quality: str = "medium-replay") -> Path:
-    """``datasets/<target>-<quality>.h5`` with the quality's dash as an underscore (medium_replay)."""
-    return Path("datasets") / f"{target}-{quality.replace('-', '_')}.h5"
 
 
 def default_logdir(algo: str, source: str | None, target: str, seed: int) -> Path:
@@ -90,7 +86,7 @@ def check_job(
     if device is not None:
         extra.append(f"device={device}")
     config = make_config(preset, extra)
-    path = Path(dataset) if dataset is not None else default_dataset(target)
+    path = Path(dataset) if dataset is not None else default_dataset_path(target, "medium-replay")
     check_dataset(path, target, target_spec.action_size)
     run_dir = Path(logdir) if logdir is not None else default_logdir(algo, source, target, config.seed)
     return TrainJob(algo, source if algo == "coworld" else None, target, path, run_dir, config, preset)

@@ -89,18 +89,22 @@ def test_cli_collect_default_path_progress_and_refusals(
 ) -> None:
     monkeypatch.chdir(tmp_path)
     runner = CliRunner()
-    result = runner.invoke(main, ["collect", "--task", fake_task, "--episodes", "4", "--seed", "3"])
+    result = runner.invoke(
+        main, ["collect", "--policy", "random", "--task", fake_task, "--episodes", "4", "--seed", "3"]
+    )
     assert result.exit_code == 0, result.output
     path = tmp_path / "datasets" / f"{fake_task}-random.h5"
     assert f"wrote {Path('datasets') / f'{fake_task}-random.h5'}: 4 episodes" in result.stdout
     assert "step/s" in result.stderr and "episodes=4" in result.stderr  # the tqdm bar: rate, episodes, mean return
     assert "mean_return=" in result.stderr
     before = helpers.file_state(path)
-    result = runner.invoke(main, ["collect", "--task", fake_task, "--episodes", "4"])
+    result = runner.invoke(main, ["collect", "--policy", "random", "--task", fake_task, "--episodes", "4"])
     assert result.exit_code == 2 and result.stderr.strip().startswith("error: ")
     assert "already exists; pass --resume to continue it or --force to overwrite it" in result.stderr
     assert helpers.file_state(path) == before
-    result = runner.invoke(main, ["collect", "--task", fake_task, "--episodes", "2", "--force", "--quiet"])
+    result = runner.invoke(
+        main, ["collect", "--policy", "random", "--task", fake_task, "--episodes", "2", "--force", "--quiet"]
+    )
     assert result.exit_code == 0 and result.stderr == ""
     with open_dataset(path) as data:
         assert data.num_episodes == 2
@@ -109,7 +113,7 @@ def test_cli_collect_default_path_progress_and_refusals(
 @pytest.mark.parametrize(
     ("args", "message"),
     [
-        (["--task", "fake_task", "--policy", "dreamerv2", "--episodes", "1"], "dreamerv2 is not available yet"),
+        (["--task", "fake_task", "--quality", "medium", "--episodes", "1"], "--quality is for --policy dreamerv2"),
         (["--task", "walker_fly", "--episodes", "1"], "walker_fly"),
         (["--task", "fake_task", "--episodes", "1", "--max-steps", "5"], "exactly one of --episodes and --max-steps"),
     ],
@@ -117,7 +121,7 @@ def test_cli_collect_default_path_progress_and_refusals(
 def test_cli_collect_bad_input_is_one_line_and_exit_2(
     tmp_path: Path, fake_task: str, args: list[str], message: str
 ) -> None:
-    result = CliRunner().invoke(main, ["collect", *args, "--out", str(tmp_path / "x.h5")])
+    result = CliRunner().invoke(main, ["collect", "--policy", "random", *args, "--out", str(tmp_path / "x.h5")])
     assert result.exit_code == 2
     assert message in result.stderr and len(result.stderr.strip().splitlines()) == 1
     assert not (tmp_path / "x.h5").exists()

@@ -146,7 +146,20 @@ def test_collect_resume_after_a_kill_collects_exactly_the_request(
     tmp_path: Path, helpers: ModuleType, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     path = tmp_path / "collect.h5"
-    args = ["collect", "--task", "fake_task", "--episodes", "15", "--out", str(path), "--workers", "2", "--quiet"]
+    args = [
+        "collect",
+        "--policy",
+        "random",
+        "--task",
+        "fake_task",
+        "--episodes",
+        "15",
+        "--out",
+        str(path),
+        "--workers",
+        "2",
+        "--quiet",
+    ]
     proc = _start(COLLECT_SCRIPT, *args)
     _wait_for_episodes(proc, 4)
     _kill(proc)
