@@ -57,6 +57,8 @@ def train(target, source, dataset, algo, preset, logdir, seed, device, overrides
     )
     kind = "offline on the dataset alone" if algo in MODEL_FREE or algo == "dreamerv2" else f"with source {source}"
     click.echo(f"train {algo} on {job.dataset} ({target}, {kind}); run folder {job.logdir}")
+    if (job.logdir / "checkpoint.pt").exists():
+        click.echo(f"resuming from {job.logdir / 'checkpoint.pt'}")
     summary = run_job(job, progress=progress)
     last = summary.get("last_eval_return")
     click.echo(f"done: {job.logdir}" + (f" (last evaluation return {last:.1f})" if last is not None else ""))

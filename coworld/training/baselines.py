@@ -57,7 +57,7 @@ def train_offline(job: TrainJob, *, device: torch.device, resumed: bool, progres
         def make_sampler(seed: int):
             return iter(curl_sampler(dataset, config, seed))
 
-        discount = None
+        discount = config.curl.discount
     with Logger(job.logdir) as logger:
         trainer = OfflineTrainer(
             agent=agent,

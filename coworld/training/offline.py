@@ -120,7 +120,7 @@ class OfflineTrainer:
                 metrics = self.agent.train(next(sampler))
                 self.updates += 1
                 bar.update(1)
-                if self.updates % s.log_every == 0:
+                if self.updates % s.log_every == 0 or self.updates == s.updates:
                     metrics["perf/updates_per_s"] = (self.updates - start_updates) / max(time.time() - start, 1e-6)
                     self.logger.log(metrics, self.updates)
                 if self.updates % s.eval_every == 0 or self.updates == s.updates:

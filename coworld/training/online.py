@@ -207,6 +207,8 @@ class OnlineTrainer:
                     break
         finally:
             bar.close()
+        if metrics:  # what the last log_every window had not written yet
+            self.logger.log(metrics, self.steps)
         if reason != "paused":
             self.save()
         return OnlineResult(self.steps, self.updates, self.writer.num_episodes, self.last_eval, reason)

@@ -1,0 +1,245 @@
+"""End to end through the real CLI: collect -> train CoWorld -> eval, and kill -9 during training then resume.
+
+The toy pair (toy_reach -> toy_reach_shifted) runs in CI; the walker pair on the tiny preset is marked slow.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import torch
+
+from coworld.data import open_dataset
+from coworld.training.logger import read_metrics
+
+CLI = [sys.executable, "-c", "from coworld.cli import main; main()"]
+FAST = ["--set", "train.prefill=100", "--set", "train.eval_episodes=2", "--device", "cpu"]
+SCHEDULE = [
+    "--set",
+    "coworld.pretrain_steps=200",
+    "--set",
+    "coworld.iterations=2",
+    "--set",
+    "coworld.target_updates=4",
+    "--set",
+    "coworld.source_updates=4",
+]
+
+
+def cli(*args: str, timeout: int = 600) -> subprocess.CompletedProcess:
+    proc = subprocess.run([*CLI, *args], capture_output=True, text=True, timeout=timeout)
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
+    return proc
+
+
+@pytest.fixture(scope="module")
+def toy_dataset(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("e2e") / "toy_reach_shifted-medium_replay.h5"
+    cli(
+        "collect",
+        "--task",
+        "toy_reach_shifted",
+        "--preset",
+        "tiny",
+        "--max-steps",
+        "300",
+        "--out",
+        str(out),
+        "--quiet",
+        *FAST,
+    )
+    return out
+
+
+def test_collect_train_eval(toy_dataset, tmp_path):
+    with open_dataset(toy_dataset) as data:
+        assert data.num_steps == 300 and data.complete
+        assert data.metadata["collector"]["algorithm"] == "dreamerv2"
+    run = tmp_path / "run"
+    cli(
+        "train",
+        "--source",
+        "toy_reach",
+        "--target",
+        "toy_reach_shifted",
+        "--dataset",
+        str(toy_dataset),
+        "--preset",
+        "tiny",
+        "--logdir",
+        str(run),
+        "--no-progress",
+        *FAST,
+        *SCHEDULE,
+    )
+    state = torch.load(run / "checkpoint.pt", weights_only=True)
+    assert state["kind"] == "coworld" and state["progress"]["iteration"] == 2
+    assert state["agent"]["updates"] == 8  # K1 = 4 target updates in each of 2 iterations
+    keys = set().union(*(record.keys() for record in read_metrics(run)))
+    for key in (
+        "target/coworld/align_kl",
+        "target/coworld/maxmin_active",
+        "target/coworld/source_value",
+        "target/coworld/target_value",
+        "source/coworld/relabel_reward_loss",
+        "eval/return",
+        "eval/value_estimate",
+        "eval/value_true",
+    ):
+        assert key in keys, key
+    assert list((run / "tb").glob("events.out.tfevents.*"))
+
+    video = tmp_path / "eval.mp4"
+    proc = cli("eval", "--ckpt", str(run), "--episodes", "3", "--video", str(video), "--device", "cpu")
+    assert "return" in proc.stdout and video.stat().st_size > 1000
+    result = json.loads((run / "eval.json").read_text())
+    assert len(result["returns"]) == 3 and result["task"] == "toy_reach_shifted"
+    assert len(result["value_estimate"]) == 3 and len(result["value_true"]) == 3
+    assert result["mean"] == pytest.approx(sum(result["returns"]) / 3)
+
+
+def test_offline_dreamerv2_baseline(toy_dataset, tmp_path):
+    run = tmp_path / "dv2"
+    cli(
+        "train",
+        "--algo",
+        "dreamerv2",
+        "--target",
+        "toy_reach_shifted",
+        "--dataset",
+        str(toy_dataset),
+        "--preset",
+        "tiny",
+        "--logdir",
+        str(run),
+        "--no-progress",
+        *FAST,
+        *SCHEDULE,
+    )
+    state = torch.load(run / "checkpoint.pt", weights_only=True)
+    assert state["kind"] == "dreamerv2-offline" and state["updates"] == 8  # same target budget as CoWorld
+    assert not (run / "source_replay.h5").exists()  # no environment interaction while training
+
+
+def test_kill_during_training_resumes(toy_dataset, tmp_path):
+    run = tmp_path / "run"
+    args = [
+        *CLI,
+        "train",
+        "--source",
+        "toy_reach",
+        "--target",
+        "toy_reach_shifted",
+        "--dataset",
+        str(toy_dataset),
+        "--preset",
+        "tiny",
+        "--logdir",
+        str(run),
+        "--no-progress",
+        *FAST,
+        *SCHEDULE,
+        "--set",
+        "coworld.target_updates=30",
+    ]
+    proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    deadline = time.time() + 600
+    while not (run / "checkpoint.pt").exists() and time.time() < deadline and proc.poll() is None:
+        time.sleep(0.2)
+    assert proc.poll() is None, "training ended before it could be killed"
+    os.killpg(proc.pid, signal.SIGKILL)  # right after the pretraining checkpoint, inside the first target phase
+    proc.wait()
+    first = torch.load(run / "checkpoint.pt", weights_only=True)
+    assert first["progress"] == {"iteration": 0, "phase": "target", "last_eval": None}
+    with open_dataset(run / "source_replay.h5") as replay:
+        rows_at_kill = replay.num_steps
+    assert rows_at_kill >= 200
+
+    out = cli(*args[len(CLI) :])
+    assert "resuming from" in out.stdout
+    final = torch.load(run / "checkpoint.pt", weights_only=True)
+    assert final["progress"]["iteration"] == 2
+    assert final["agent"]["updates"] == 60  # exactly 2 x K1: the killed phase was redone, not double counted
+    with open_dataset(run / "source_replay.h5") as replay:
+        assert replay.num_steps > rows_at_kill  # continued the source experience, not restarted
+        assert replay.num_steps == int(sum(replay.lengths))
+
+
+@pytest.mark.slow
+def test_walker_quickstart_pipeline(tmp_path):
+    out = tmp_path / "walker_uphill-medium_replay.h5"
+    cli(
+        "collect",
+        "--task",
+        "walker_uphill",
+        "--preset",
+        "tiny",
+        "--max-steps",
+        "2000",
+        "--out",
+        str(out),
+        "--quiet",
+        timeout=1800,
+    )
+    run = tmp_path / "run"
+    cli(
+        "train",
+        "--source",
+        "walker_walk",
+        "--target",
+        "walker_uphill",
+        "--dataset",
+        str(out),
+        "--preset",
+        "tiny",
+        "--logdir",
+        str(run),
+        "--no-progress",
+        timeout=1800,
+    )
+    proc = cli("eval", "--ckpt", str(run), "--episodes", "2", "--workers", "2", timeout=1800)
+    assert "walker_uphill: return" in proc.stdout
+
+
+@pytest.mark.parametrize("algo", ["curl", "curl-cql"])
+def test_model_free_baselines_train_and_eval(toy_dataset, tmp_path, algo):
+    run = tmp_path / algo
+    proc = cli(
+        "train",
+        "--algo",
+        algo,
+        "--source",
+        "toy_reach",
+        "--target",
+        "toy_reach_shifted",
+        "--dataset",
+        str(toy_dataset),
+        "--preset",
+        "tiny",
+        "--logdir",
+        str(run),
+        "--no-progress",
+        "--device",
+        "cpu",
+        "--set",
+        "curl.updates=20",
+        "--set",
+        "curl.eval_every=20",
+        "--set",
+        "curl.checkpoint_every=10",
+    )
+    assert f"--source is not used by {algo}" in proc.stderr
+    state = torch.load(run / "checkpoint.pt", weights_only=True)
+    assert state["kind"] == algo and state["updates"] == 20
+    keys = set().union(*(record.keys() for record in read_metrics(run)))
+    assert "curl/loss" in keys and "eval/return" in keys
+    assert ("cql/penalty" in keys) == (algo == "curl-cql")
+    proc = cli("eval", "--ckpt", str(run), "--episodes", "2", "--device", "cpu")
+    assert "toy_reach_shifted: return" in proc.stdout
