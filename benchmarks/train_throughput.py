@@ -1,7 +1,9 @@
-"""DreamerV2 training throughput: updates per second, split into world model, imagination and actor-critic.
+"""Training throughput: DreamerV2 updates per second, split into world model, imagination and actor-critic;
+CoWorld's target and source updates; CURL and CURL+CQL updates.
 
 Examples::
 
+    python benchmarks/train_throughput.py --algo all                   # every algorithm, tiny preset, CPU
     python benchmarks/train_throughput.py                              # tiny preset on CPU (2 threads)
     python benchmarks/train_throughput.py --preset paper --device cpu --updates 1 --warmup 0
     python benchmarks/train_throughput.py --preset paper --device cuda --compare   # fp32 eager vs bf16 + compile
@@ -104,6 +106,37 @@ def measure(
     )
 
 
+def measure_others(preset: str, device: str, warmup: int, repeats: int, action_size: int) -> list[tuple[str, float]]:
+    """Median seconds of one update of CoWorld's target and source agents, CURL and CURL+CQL."""
+    from coworld.agents.coworld import CoWorld
+    from coworld.agents.curl import Curl
+
+    config = make_config(preset, {"device": device})
+    dev = torch.device(device if device != "auto" else ("cuda" if torch.cuda.is_available() else "cpu"))
+    coworld = CoWorld(config=config, action_size=action_size, device=dev)
+    batch = random_batch(config.train.batch_size, config.train.seq_len, action_size)
+    coworld.target_batches = iter(lambda: batch, None)
+    out = [
+        ("coworld target update", _median_time(lambda: coworld.train_target(batch), dev, warmup, repeats)),
+        ("coworld source update", _median_time(lambda: coworld.train_source(batch), dev, warmup, repeats)),
+    ]
+    c = config.curl
+    rng = np.random.default_rng(0)
+    frames = (c.batch_size, 3 * c.frame_stack, 64, 64)
+    curl_batch = {
+        "obs": rng.integers(0, 256, frames, dtype=np.uint8),
+        "next_obs": rng.integers(0, 256, frames, dtype=np.uint8),
+        "action": rng.uniform(-1, 1, (c.batch_size, action_size)).astype(np.float32),
+        "reward": rng.normal(size=c.batch_size).astype(np.float32),
+        "not_done": np.ones(c.batch_size, np.float32),
+    }
+    for cql in (False, True):
+        agent = Curl(config=config, action_size=action_size, device=dev, cql=cql)
+        seconds = _median_time(lambda agent=agent: agent.train(curl_batch), dev, warmup, repeats)
+        out.append(("curl-cql update" if cql else "curl update", seconds))
+    return out
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--preset", default="tiny", choices=["tiny", "paper"])
@@ -113,10 +146,23 @@ def main() -> None:
     parser.add_argument("--warmup", type=int, default=3, help="unmeasured calls per part first")
     parser.add_argument("--action-size", type=int, default=6)
     parser.add_argument("--compare", action="store_true", help="CUDA: fp32 eager vs bf16 + torch.compile")
+    parser.add_argument(
+        "--algo",
+        default="dreamerv2",
+        choices=["dreamerv2", "others", "all"],
+        help="dreamerv2 (with its breakdown), others (CoWorld, CURL, CURL+CQL) or all",
+    )
     parser.add_argument("--json", default=None, help="also write the timings to this JSON file")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     torch.manual_seed(0)
+    if args.algo in ("others", "all"):
+        print(f"preset={args.preset} device={args.device} threads={args.threads}")
+        print(f"{'update':<24}{'s':>10}{'updates/s':>11}")
+        for label, seconds in measure_others(args.preset, args.device, args.warmup, args.updates, args.action_size):
+            print(f"{label:<24}{seconds:>10.4f}{1.0 / seconds:>11.2f}")
+        if args.algo == "others":
+            return
 
     runs = [("default", {})]
     if args.compare:

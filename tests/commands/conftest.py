@@ -1,54 +1,13 @@
-"""Small toy datasets for the train / eval command tests."""
+"""A small random toy_reach_shifted dataset for the train / eval command tests."""
 
 from __future__ import annotations
 
-import dataclasses
 from pathlib import Path
 
-import numpy as np
 import pytest
-
-from coworld import envs
-from coworld.data import DatasetWriter
-
-
-def write_toy_dataset(path: Path, task: str = "toy_reach", episodes: int = 4, seed: int = 0) -> Path:
-    """Random-policy episodes of a toy task written with the real writer."""
-    spec = envs.task_spec(task)
-    env = envs.make(task, seed=seed)
-    rng = np.random.default_rng(seed)
-    with DatasetWriter(
-        path,
-        task=task,
-        env_config=dataclasses.asdict(spec),
-        quality="random",
-        collector={"algorithm": "random", "seed": seed},
-        action_size=spec.action_size,
-    ) as writer:
-        for episode in range(episodes):
-            obs, _ = env.reset(seed=seed + episode)
-            frames, actions, rewards = [obs], [], []
-            done = False
-            while not done:
-                action = rng.uniform(-1, 1, spec.action_size).astype(np.float32)
-                obs, reward, terminated, truncated, _ = env.step(action)
-                frames.append(obs)
-                actions.append(action)
-                rewards.append(reward)
-                done = terminated or truncated
-            writer.add_episode(
-                observations=np.stack(frames),
-                actions=np.stack(actions),
-                rewards=np.asarray(rewards, np.float32),
-                terminated=bool(terminated),
-            )
-        writer.close(complete=True)
-    env.close()
-    return path
 
 
 @pytest.fixture(scope="session")
-def toy_dataset(tmp_path_factory) -> Path:
-    return write_toy_dataset(
-        tmp_path_factory.mktemp("data") / "toy_reach_shifted-medium_replay.h5", "toy_reach_shifted"
-    )
+def toy_dataset(tmp_path_factory, toy_dataset_writer) -> Path:
+    path = tmp_path_factory.mktemp("data") / "toy_reach_shifted-medium_replay.h5"
+    return toy_dataset_writer(path, "toy_reach_shifted")
