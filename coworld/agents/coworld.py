@@ -269,12 +269,7 @@ def train_coworld(job: Any, *, device: torch.device, resumed: bool, progress: bo
                             discount=config.actor_critic.discount,
                         )
                         progress_state["last_eval"] = result.mean
-                        metrics = {"eval/return": result.mean, "eval/return_std": result.std}
-                        if result.success_rate is not None:
-                            metrics["eval/success"] = result.success_rate
-                        if result.value_estimate is not None:
-                            metrics["eval/value_estimate"] = float(np.mean(result.value_estimate))
-                            metrics["eval/value_true"] = float(np.mean(result.value_true))
+                        metrics = result.metrics()
                         logger.log(metrics, agent.target.updates)
                         bar.set_postfix(eval_return=f"{result.mean:.1f}")
                     progress_state.update(iteration=iteration + 1, phase="target")

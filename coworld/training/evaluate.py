@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -65,6 +65,16 @@ class EvalResult:
                 f" {np.mean(self.value_true):.2f}"
             )
         return text
+
+    def metrics(self, prefix: str = "") -> dict[str, float]:
+        """The logged scalars: ``eval/return``, ``eval/return_std`` and, when measured, success and value check."""
+        out = {f"{prefix}eval/return": self.mean, f"{prefix}eval/return_std": self.std}
+        if self.success_rate is not None:
+            out[f"{prefix}eval/success"] = self.success_rate
+        if self.value_estimate is not None and self.value_true is not None:
+            out[f"{prefix}eval/value_estimate"] = float(np.mean(self.value_estimate))
+            out[f"{prefix}eval/value_true"] = float(np.mean(self.value_true))
+        return out
 
     def to_dict(self) -> dict[str, Any]:
         data = asdict(self)
@@ -208,8 +218,6 @@ def load_trained_agent(path: Path, device: str = "auto") -> tuple[Any, dict[str,
         raise CheckpointError(f"no checkpoint at {ckpt}; pass a run folder made by `coworld train` or its checkpoint")
     config, info = load_run(run_dir)
     state = load_checkpoint(ckpt)
-    from dataclasses import replace
-
     config = replace(config, device=device)
     torch_device = resolve_device(device)
     agent = make_agent(

@@ -143,10 +143,5 @@ class OfflineTrainer:
             discount=self.discount,
         )
         self.last_eval = result.mean
-        metrics = {"eval/return": result.mean, "eval/return_std": result.std}
-        if result.success_rate is not None:
-            metrics["eval/success"] = result.success_rate
-        if result.value_estimate is not None and result.value_true is not None:
-            metrics["eval/value_estimate"] = float(np.mean(result.value_estimate))
-            metrics["eval/value_true"] = float(np.mean(result.value_true))
+        metrics = result.metrics()
         self.logger.log(metrics, self.updates)

@@ -279,7 +279,5 @@ class OnlineTrainer:
         )
         self.last_eval, self.last_eval_step = result.mean, self.steps
         self.writer.update_metadata(last_eval_return=result.mean, last_eval_step=self.steps)
-        metrics = {f"{self.prefix}eval/return": result.mean, f"{self.prefix}eval/return_std": result.std}
-        if result.success_rate is not None:
-            metrics[f"{self.prefix}eval/success"] = result.success_rate
+        metrics = result.metrics(self.prefix)
         self.logger.log(metrics, self.steps)
