@@ -34,7 +34,7 @@ if ! "$VENV/bin/python" -c "import torch" >/dev/null 2>&1; then
   # TORCH_PIP_ARGS lets a user point pip at another index, e.g. PyTorch's CPU wheel index.
   # shellcheck disable=SC2086
   "${pip[@]}" install "torch==2.13.0" ${TORCH_PIP_ARGS:-} 2>&1 | grep -v "^WARNING: Location" || true
-  "$VENV/bin/python" -c "import torch" || { echo "install: torch failed to install" >&2; exit 1; }
+  "$VENV/bin/python" -c "import torch" 2>/dev/null || { echo "install: torch failed to install" >&2; exit 1; }
 fi
 echo "install: coworld and its pinned dependencies"
 "${pip[@]}" install -e ".[dev]" 2>&1 | grep -v "^WARNING: Location" || true

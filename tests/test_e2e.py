@@ -243,3 +243,50 @@ def test_model_free_baselines_train_and_eval(toy_dataset, tmp_path, algo):
     assert ("cql/penalty" in keys) == (algo == "curl-cql")
     proc = cli("eval", "--ckpt", str(run), "--episodes", "2", "--device", "cpu")
     assert "toy_reach_shifted: return" in proc.stdout
+
+
+def test_kill_during_collect_then_resume(tmp_path):
+    out = tmp_path / "toy.h5"
+    args = [
+        *CLI,
+        "collect",
+        "--task",
+        "toy_reach",
+        "--preset",
+        "tiny",
+        "--max-steps",
+        "600",
+        "--out",
+        str(out),
+        "--quiet",
+        *FAST,
+        "--set",
+        "train.checkpoint_every=50",
+    ]
+    proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    checkpoint = tmp_path / "toy.run" / "checkpoint.pt"
+    deadline = time.time() + 600
+    while proc.poll() is None and time.time() < deadline:
+        if checkpoint.exists() and torch.load(checkpoint, weights_only=True)["updates"] > 0:
+            break  # past the prefill: the agent is learning
+        time.sleep(0.2)
+    assert proc.poll() is None, "collection ended before it could be killed"
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait()
+    with open_dataset(out) as data:
+        rows_at_kill, episodes_at_kill = data.num_steps, data.num_episodes
+        first_frames = [data.episode(i)["image"][0].copy() for i in range(episodes_at_kill)]
+        assert not data.complete and 0 < rows_at_kill < 600
+    updates_at_kill = torch.load(checkpoint, weights_only=True)["updates"]
+
+    proc = subprocess.run([*args, "--resume"], capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    with open_dataset(out) as data:
+        assert data.complete and data.num_steps == 600  # exactly the requested rows
+        assert int(sum(data.lengths)) == 600 and data.num_episodes > episodes_at_kill
+        for i, frame in enumerate(first_frames):  # the episodes written before the kill are kept as they were
+            assert (data.episode(i)["image"][0] == frame).all()
+        starts = [data.episode(i)["image"][0].tobytes() for i in range(data.num_episodes)]
+        assert len(set(starts)) == len(starts)  # no episode written twice
+        assert data.metadata["collector"]["algorithm"] == "dreamerv2"
+    assert torch.load(checkpoint, weights_only=True)["updates"] > updates_at_kill  # the agent continued
