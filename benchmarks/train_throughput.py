@@ -33,6 +33,7 @@ from coworld.agents.dreamerv2 import DreamerV2
 from coworld.config import make_config
 from coworld.models.actor_critic import flatten_states
 from coworld.models.networks import frozen_parameters
+from coworld.training.run import resolve_device
 
 
 @dataclass(frozen=True)
@@ -112,7 +113,7 @@ def measure_others(preset: str, device: str, warmup: int, repeats: int, action_s
     from coworld.agents.curl import Curl
 
     config = make_config(preset, {"device": device})
-    dev = torch.device(device if device != "auto" else ("cuda" if torch.cuda.is_available() else "cpu"))
+    dev = resolve_device(device)
     coworld = CoWorld(config=config, action_size=action_size, device=dev)
     batch = random_batch(config.train.batch_size, config.train.seq_len, action_size)
     coworld.target_batches = iter(lambda: batch, None)

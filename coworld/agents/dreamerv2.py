@@ -24,6 +24,7 @@ from coworld.models.actor_critic import ActorCritic, ValueRegulariser, flatten_s
 from coworld.models.networks import frozen_parameters
 from coworld.models.rssm import State
 from coworld.models.world_model import WorldModel
+from coworld.training.run import resolve_device
 
 __all__ = ["DreamerV2", "ExtraWorldModelLoss", "PolicyState", "resolve_device", "resolve_precision"]
 
@@ -37,22 +38,6 @@ ExtraWorldModelLoss = Callable[[dict[str, Tensor], dict[str, Any]], dict[str, Te
 ``wm/<name>``."""
 
 _OPTIM_KEYS = ("wm_opt", "actor_opt", "critic_opt")
-
-
-def resolve_device(name: str | torch.device) -> torch.device:
-    """'auto' -> CUDA when available, else CPU; 'cpu' / 'cuda' / 'cuda:1' as given (CUDA must be available)."""
-    if isinstance(name, torch.device):
-        device = name
-    elif name == "auto":
-        device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    else:
-        try:
-            device = torch.device(name)
-        except RuntimeError:
-            raise ConfigError(f"unknown device {name!r}; use 'auto', 'cpu' or 'cuda'") from None
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise ConfigError("device 'cuda' requested but torch sees no CUDA GPU; set device=cpu (or auto)")
-    return device
 
 
 def resolve_precision(precision: str, device: torch.device) -> torch.dtype | None:
