@@ -239,7 +239,7 @@ class Config:
     precision: str = "auto"
     """'auto' (bf16 autocast on CUDA, fp32 on CPU), 'bf16' or 'fp32'."""
     compile: bool = False
-    """torch.compile the world model and actor-critic (CUDA only)."""
+    """torch.compile the world model and actor-critic networks (meant for CUDA; works on CPU too)."""
 
 
 PRESETS: dict[str, dict[str, Any]] = {

@@ -12,6 +12,7 @@ from typing import Any
 
 import click
 
+from coworld.commands.options import threads_option
 from coworld.data import CODECS
 from coworld.errors import CoworldError
 
@@ -109,6 +110,7 @@ COLLECTORS: dict[str, Callable[[dict[str, Any]], None]] = {
 @click.option("--resume", is_flag=True, help="Continue a partial dataset at --out up to the requested amount.")
 @click.option("--force", is_flag=True, help="Overwrite an existing dataset at --out.")
 @click.option("--compression", type=click.Choice(CODECS), default="gzip", show_default=True, help="Frame codec.")
+@threads_option
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 def collect(**options: Any) -> None:
     """Collect an offline dataset of TASK; each episode is written as soon as it ends.

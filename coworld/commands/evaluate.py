@@ -6,6 +6,8 @@ from pathlib import Path
 
 import click
 
+from coworld.commands.options import threads_option
+
 
 @click.command("eval")
 @click.option("--ckpt", "ckpt", required=True, type=click.Path(), help="Run folder or its checkpoint.pt.")
@@ -18,6 +20,7 @@ import click
     "--out", type=click.Path(dir_okay=False), default=None, help="Results JSON; default <run folder>/eval.json."
 )
 @click.option("--task", default=None, help="Evaluate in another task than the run's target (same action size).")
+@threads_option
 @click.option("--device", type=click.Choice(["auto", "cpu", "cuda"]), default="auto", show_default=True)
 def evaluate(ckpt, episodes, workers, seed, video, video_episodes, out, task, device) -> None:
     """Mean ± std return (and success rate on Meta-World) of a trained policy, plus the value check."""

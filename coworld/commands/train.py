@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import click
 
+from coworld.commands.options import threads_option
 from coworld.training.train import ALGOS, MODEL_FREE
 
 
@@ -33,6 +34,7 @@ from coworld.training.train import ALGOS, MODEL_FREE
     metavar="KEY=VALUE",
     help="Config override, e.g. --set coworld.align=false (repeatable).",
 )
+@threads_option
 @click.option("--progress/--no-progress", default=True, help="Progress bars.")
 def train(target, source, dataset, algo, preset, logdir, seed, device, overrides, progress) -> None:
     """Train on a fixed target dataset (CoWorld also learns online in --source).

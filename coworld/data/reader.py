@@ -283,7 +283,10 @@ class Dataset:
         return self._steps
 
     def fits_in_ram(self) -> bool:
-        """Whether all frames take less than half of the memory available now."""
+        """Whether all frames are loaded already (:meth:`load_frames`) or take less than half of the memory
+        available now."""
+        if self._ram_images is not None:
+            return True
         need = self.num_frames * int(np.prod(self.image_shape))
         return need < RAM_FRACTION * psutil.virtual_memory().available
 

@@ -120,8 +120,7 @@ class TransitionSampler:
         """Sample from a :class:`~coworld.data.reader.Dataset`, its frames loaded into RAM once (shared with its
         sequence sampler's "ram" mode, and with later samplers of the same Dataset object, as a resumed or
         re-seeded run builds); a dataset too large for the free memory raises DatasetError."""
-        already_loaded = getattr(dataset, "_ram_images", None) is not None  # Dataset.load_frames' cache
-        if not already_loaded and not dataset.fits_in_ram():
+        if not dataset.fits_in_ram():
             gigabytes = dataset.num_frames * int(np.prod(dataset.image_shape)) / 2**30
             raise DatasetError(
                 f"{dataset.path}: the transition sampler keeps all frames in RAM ({gigabytes:.1f} GiB), more than"

@@ -78,3 +78,17 @@ def read_metrics(logdir: str | Path) -> list[dict[str, Any]]:
     if not path.exists():
         return []
     return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+
+
+class Rate:
+    """Counts per second between successive calls (e.g. updates/s over one log window)."""
+
+    def __init__(self, count: int = 0) -> None:
+        self._count, self._time = count, time.perf_counter()
+
+    def __call__(self, count: int) -> float:
+        """The rate since the previous call (or construction), then restart the window at ``count``."""
+        now = time.perf_counter()
+        rate = (count - self._count) / max(now - self._time, 1e-9)
+        self._count, self._time = count, now
+        return rate

@@ -8,7 +8,6 @@ that was never interrupted.
 
 from __future__ import annotations
 
-import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -20,7 +19,7 @@ import tqdm
 from coworld.config import to_dict
 from coworld.training.checkpoint import CHECKPOINT_NAME, load_checkpoint, rng_state, save_checkpoint, set_rng_state
 from coworld.training.evaluate import evaluate
-from coworld.training.logger import Logger
+from coworld.training.logger import Logger, Rate
 
 SamplerFactory = Callable[[int], Iterator[dict[str, np.ndarray]]]
 
@@ -113,7 +112,7 @@ class OfflineTrainer:
         s = self.schedule
         bar = tqdm.tqdm(total=s.updates, initial=self.updates, unit="update", disable=not progress, dynamic_ncols=True)
         sampler = self.make_sampler(self.config.seed + self.updates)
-        start, start_updates = time.time(), self.updates
+        update_rate = Rate(self.updates)
         metrics: dict[str, float] = {}
         try:
             while self.updates < s.updates:
@@ -121,7 +120,7 @@ class OfflineTrainer:
                 self.updates += 1
                 bar.update(1)
                 if self.updates % s.log_every == 0 or self.updates == s.updates:
-                    metrics["perf/updates_per_s"] = (self.updates - start_updates) / max(time.time() - start, 1e-6)
+                    metrics["perf/updates_per_s"] = update_rate(self.updates)  # this log window, evaluation included
                     self.logger.log(metrics, self.updates)
                 if self.updates % s.eval_every == 0 or self.updates == s.updates:
                     self.evaluate()

@@ -14,7 +14,6 @@ next ``step`` of that environment ignores its action and returns the first obser
 
 from __future__ import annotations
 
-import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -28,7 +27,7 @@ from coworld.config import Config, to_dict
 from coworld.data import DatasetWriter, open_dataset
 from coworld.training.checkpoint import CHECKPOINT_NAME, load_checkpoint, rng_state, save_checkpoint, set_rng_state
 from coworld.training.evaluate import evaluate
-from coworld.training.logger import Logger
+from coworld.training.logger import Logger, Rate
 from coworld.training.replay import Replay
 
 CHECKPOINT_KIND = "dreamerv2-online"
@@ -84,6 +83,7 @@ class OnlineTrainer:
         self.steps = writer.num_steps
         self.updates = 0
         self.last_eval: float | None = None
+        self._updates_per_s: float | None = None
         self.last_eval_step = -1
         self._venv: Any = None
         self._obs: np.ndarray | None = None
@@ -157,7 +157,7 @@ class OnlineTrainer:
             total=max_steps, initial=min(self.steps, max_steps), unit="step", disable=not progress, dynamic_ncols=True
         )
         reason = "max steps"
-        start, start_updates = time.time(), self.updates
+        update_rate, step_rate = Rate(self.updates), Rate(self.steps)
         metrics: dict[str, float] = {}
         last_log = self.steps
         try:
@@ -188,14 +188,16 @@ class OnlineTrainer:
                 self._is_first = self._is_last.copy()
                 metrics.update(self._train_due())
                 if self.steps - last_log >= cfg.log_every and metrics:
-                    elapsed = max(time.time() - start, 1e-6)
-                    metrics[f"{self.prefix}perf/updates_per_s"] = (self.updates - start_updates) / elapsed
+                    # Rates over this log window, evaluation and checkpoint time included.
+                    metrics[f"{self.prefix}perf/updates_per_s"] = update_rate(self.updates)
+                    metrics[f"{self.prefix}perf/steps_per_s"] = step_rate(self.steps)
+                    bar.set_postfix(self._bar_info(metrics[f"{self.prefix}perf/updates_per_s"]))
                     self.logger.log(metrics, self.steps)
                     metrics, last_log = {}, self.steps
                 if ended:
                     if self.steps >= cfg.prefill and self.steps - self.last_eval_step >= cfg.eval_every:
                         self._evaluate()
-                        bar.set_postfix(eval_return=f"{self.last_eval:.1f}", updates=self.updates)
+                        bar.set_postfix(self._bar_info())
                         if stop_return is not None and self.last_eval >= stop_return:
                             reason = f"evaluation return {self.last_eval:.1f} reached {stop_return:.1f}"
                             break
@@ -256,6 +258,17 @@ class OnlineTrainer:
             infos=infos,
         )
         return True
+
+    def _bar_info(self, updates_per_s: float | None = None) -> dict[str, str]:
+        """The progress bar's postfix: updates, updates/s over the last log window, last evaluation return."""
+        if updates_per_s is not None:
+            self._updates_per_s = updates_per_s
+        info = {"updates": f"{self.updates:,}"}
+        if self._updates_per_s is not None:
+            info["updates/s"] = f"{self._updates_per_s:.1f}"
+        if self.last_eval is not None:
+            info["eval_return"] = f"{self.last_eval:.1f}"
+        return info
 
     def _train_due(self) -> dict[str, float]:
         cfg = self.config.train

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import io
 import math
+import types
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
@@ -13,7 +14,7 @@ import torch
 
 from coworld.agents.curl import Curl, make_sampler
 from coworld.config import Config, make_config
-from coworld.data import DatasetWriter, open_dataset
+from coworld.data import DatasetWriter, open_dataset, reader
 from coworld.data.transitions import TransitionSampler
 from coworld.envs import make
 from coworld.errors import CheckpointError, DatasetError
@@ -402,15 +403,16 @@ def test_make_sampler_memory_check_and_rebuilding(tmp_path: Path, monkeypatch: p
     path = tmp_path / "toy.h5"
     _write_expert_dataset(path, episodes=2, noise=0.3, seed=0)
     config = _tiny(batch_size=4)
-    with open_dataset(path) as dataset:
-        monkeypatch.setattr(dataset, "fits_in_ram", lambda: False)
+    no_memory = types.SimpleNamespace(available=0)
+    with open_dataset(path) as dataset, monkeypatch.context() as patch:
+        patch.setattr(reader.psutil, "virtual_memory", lambda: no_memory)
         with pytest.raises(DatasetError, match="RAM"):
             make_sampler(dataset, config, seed=0)
     with open_dataset(path) as dataset:
         first = next(make_sampler(dataset, config, seed=1))
         # The trainer rebuilds the sampler at every checkpoint; frames already loaded are reused, not re-checked
         # against the (now smaller) free memory.
-        monkeypatch.setattr(dataset, "fits_in_ram", lambda: False)
+        monkeypatch.setattr(reader.psutil, "virtual_memory", lambda: no_memory)
         again = next(make_sampler(dataset, config, seed=1))
     assert all(np.array_equal(first[key], again[key]) for key in first)
 

@@ -104,10 +104,14 @@ def test_the_seed_decides_the_windows(dataset_path: Path) -> None:
 def test_auto_mode_streams_when_the_frames_do_not_fit(dataset_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     import coworld.data.reader as reader
 
+    with open_dataset(dataset_path) as data, monkeypatch.context() as patch:
+        patch.setattr(reader, "RAM_FRACTION", 1e-9)
+        assert data.sampler(B, L).mode == "stream"
     with open_dataset(dataset_path) as data:
         assert data.sampler(B, L).mode == "ram"
+        # Frames already in RAM stay there: a later sampler on the same dataset does not fall back to disk.
         monkeypatch.setattr(reader, "RAM_FRACTION", 1e-9)
-        assert data.sampler(B, L).mode == "stream"
+        assert data.sampler(B, L).mode == "ram"
 
 
 def test_bad_sampler_arguments(dataset_path: Path) -> None:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+
 import pytest
 import torch
 
@@ -11,9 +13,12 @@ ACTION_SIZE = 3
 
 
 @pytest.fixture(autouse=True)
-def _seeded_single_thread() -> None:
+def _seeded_single_thread() -> Iterator[None]:
+    threads = torch.get_num_threads()
     torch.set_num_threads(1)
     torch.manual_seed(0)
+    yield
+    torch.set_num_threads(threads)
 
 
 @pytest.fixture

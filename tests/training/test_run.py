@@ -4,7 +4,8 @@ import pytest
 
 from coworld.config import make_config
 from coworld.errors import CoworldError
-from coworld.training.logger import Logger, read_metrics
+from coworld.training import logger as logger_module
+from coworld.training.logger import Logger, Rate, read_metrics
 from coworld.training.run import load_run, prepare_run_dir
 
 
@@ -29,3 +30,11 @@ def test_logger_writes_jsonl_and_tensorboard(tmp_path):
     assert [r["step"] for r in records] == [10, 20]
     assert records[0]["wm/loss"] == 1.5 and records[0]["eval/return"] is None
     assert list((tmp_path / "tb").glob("events.out.tfevents.*"))
+
+
+def test_rate_counts_per_second_over_each_window(monkeypatch):
+    clock = iter([10.0, 12.0, 13.0])
+    monkeypatch.setattr(logger_module.time, "perf_counter", lambda: next(clock))
+    rate = Rate(100)  # starts at count 100, t = 10
+    assert rate(110) == pytest.approx(5.0)  # 10 more in 2 s
+    assert rate(113) == pytest.approx(3.0)  # the window restarted at 110, t = 12

@@ -1,0 +1,37 @@
+"""Options shared by the torch commands."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from click.testing import CliRunner
+
+from coworld.cli import main
+
+
+@pytest.fixture
+def restore_threads():
+    threads = torch.get_num_threads()
+    yield
+    torch.set_num_threads(threads)
+
+
+@pytest.mark.parametrize(
+    "args",
+    [
+        ["train", "--target", "no_such_task"],
+        ["collect", "--task", "no_such_task"],
+        ["eval", "--ckpt", "no/such/run"],
+    ],
+)
+def test_threads_sets_torch_threads(args, restore_threads):
+    torch.set_num_threads(2)
+    # The option acts while the options are parsed, before the command refuses the bad input.
+    result = CliRunner().invoke(main, [*args, "--threads", "1"])
+    assert result.exit_code == 2 and result.output.startswith("error: "), result.output
+    assert torch.get_num_threads() == 1
+
+
+def test_threads_must_be_positive(restore_threads):
+    result = CliRunner().invoke(main, ["eval", "--threads", "0", "--ckpt", "x"])
+    assert result.exit_code == 2 and "--threads" in result.output
