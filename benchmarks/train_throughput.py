@@ -6,7 +6,7 @@ Examples::
     python benchmarks/train_throughput.py --algo all                   # every algorithm, tiny preset, CPU
     python benchmarks/train_throughput.py                              # tiny preset on CPU (2 threads)
     python benchmarks/train_throughput.py --preset paper --device cpu --updates 1 --warmup 0
-    python benchmarks/train_throughput.py --preset paper --device cuda --compare   # fp32 eager vs bf16 + compile
+    python benchmarks/train_throughput.py --preset paper --device cuda --compare   # fp32 / bf16, eager / compiled
 
 Batches are random uint8 frames (throughput does not depend on content). Timings are medians over
 ``--updates`` measured steps after ``--warmup`` steps; CUDA work is synchronised before each clock read.
@@ -146,7 +146,9 @@ def main() -> None:
     parser.add_argument("--updates", type=int, default=20, help="measured calls per part")
     parser.add_argument("--warmup", type=int, default=3, help="unmeasured calls per part first")
     parser.add_argument("--action-size", type=int, default=6)
-    parser.add_argument("--compare", action="store_true", help="CUDA: fp32 eager vs bf16 + torch.compile")
+    parser.add_argument(
+        "--compare", action="store_true", help="fp32 / bf16 autocast, each eager and torch.compiled (meant for CUDA)"
+    )
     parser.add_argument(
         "--algo",
         default="dreamerv2",
@@ -168,8 +170,9 @@ def main() -> None:
     runs = [("default", {})]
     if args.compare:
         runs = [
-            ("fp32-eager", {"precision": "fp32", "compile": False}),
-            ("bf16-compile", {"precision": "bf16", "compile": True}),
+            (f"{precision}-{mode}", {"precision": precision, "compile": mode == "compile"})
+            for mode in ("eager", "compile")
+            for precision in ("fp32", "bf16")
         ]
     results = [
         measure(args.preset, args.device, overrides, label, args.warmup, args.updates, args.action_size)
