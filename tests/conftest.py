@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 from coworld import envs
 from coworld.data import DatasetWriter
@@ -51,3 +53,13 @@ def write_toy_dataset(path: Path, task: str = "toy_reach", episodes: int = 4, se
 def toy_dataset_writer():
     """The function writing random-policy toy datasets: ``(path, task, episodes, seed) -> path``."""
     return write_toy_dataset
+
+
+@pytest.fixture
+def one_torch_thread() -> Iterator[None]:
+    """One torch thread for the test, restored after: tiny networks gain little from a second one, and two crawl
+    when another job holds a core (benchmarks/RESULTS.md, "Threads")."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)

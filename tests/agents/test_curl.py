@@ -5,7 +5,7 @@ from __future__ import annotations
 import io
 import math
 import types
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -20,14 +20,7 @@ from coworld.envs import make
 from coworld.errors import CheckpointError, DatasetError
 from coworld.models.curl import center_crop, random_crop, squashed_gaussian_log_prob, squashed_gaussian_sample
 
-
-@pytest.fixture(autouse=True)
-def _one_thread() -> Iterator[None]:
-    """One torch thread: tiny networks gain nothing from two, and two threads crawl when other jobs share the CPU."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 # --------------------------------------------------------------------------------------------------------------
