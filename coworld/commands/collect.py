@@ -98,7 +98,8 @@ COLLECTORS: dict[str, Callable[[dict[str, Any]], None]] = {
     "--stop-return",
     type=float,
     default=None,
-    help="dreamerv2 only: stop training once evaluation reaches this [default: 1/3 of the task's reference].",
+    help="dreamerv2 only: stop training once evaluation reaches this [default: 1/3 of the task's reference; none"
+    " for --quality expert].",
 )
 @click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE", help="dreamerv2 only: config override.")
 @click.option("--device", type=click.Choice(["auto", "cpu", "cuda"]), default="auto", show_default=True)

@@ -4,7 +4,8 @@
   the random prefill on, streamed into the dataset as each episode ends, until the evaluation return reaches
   the medium level (``stop_return``, by default a third of the task's reference return) or ``max_steps`` rows.
 * ``medium`` / ``expert``: the agent is trained the same way (its own experience goes to
-  ``<run>/replay.h5``), then ``episodes`` episodes of the trained policy are recorded into the dataset.
+  ``<run>/replay.h5``), then ``episodes`` episodes of the trained policy are recorded into the dataset. For
+  ``expert`` there is no default ``stop_return``: the agent trains for all ``max_steps``.
 
 The agent's run folder (checkpoint, logs, config) sits next to the dataset as ``<dataset>.run/``. Killed and
 rerun with ``--resume``, the agent comes back from its last checkpoint and the dataset continues from its last
@@ -42,10 +43,14 @@ class DreamerCollectSummary:
     last_eval_return: float | None
 
 
-def default_stop_return(task: str) -> float | None:
-    """The medium level: a third of the task's reference return (None where no reference is known)."""
+def default_stop_return(task: str, quality: str = "medium-replay") -> float | None:
+    """When training stops early: at the medium level, a third of the task's reference return, for medium-replay
+    and medium data; never for expert data (the agent trains for all its steps). None where no reference is
+    known."""
     reference = envs.task_spec(task).reference_return
-    return None if reference is None else reference / 3.0
+    if quality == "expert" or reference is None:
+        return None
+    return reference / 3.0
 
 
 def collect_dreamerv2(
@@ -77,7 +82,7 @@ def collect_dreamerv2(
     if force and run_dir.exists():
         shutil.rmtree(run_dir)
     if stop_return is None:
-        stop_return = default_stop_return(task)
+        stop_return = default_stop_return(task, quality)
     limit = max_steps if max_steps is not None else config.train.steps
     info = {"task": task, "quality": quality, "dataset": str(out), "max_steps": limit, "stop_return": stop_return}
     resumed = prepare_run_dir(run_dir, config, info)
@@ -177,7 +182,6 @@ def _record_policy(
                 infos=infos,
             )
         env.close()
+        recorded = writer.num_episodes, writer.num_steps
         writer.close(complete=True)
-        return DreamerCollectSummary(
-            out, writer.num_episodes, writer.num_steps, result.stop_reason, result.last_eval_return
-        )
+    return DreamerCollectSummary(out, *recorded, result.stop_reason, result.last_eval_return)

@@ -157,6 +157,9 @@ class OnlineTrainer:
             total=max_steps, initial=min(self.steps, max_steps), unit="step", disable=not progress, dynamic_ncols=True
         )
         reason = "max steps"
+        if stop_return is not None and self.last_eval is not None and self.last_eval >= stop_return:
+            max_steps = self.steps  # a resumed run that had already reached its goal does not go on
+            reason = f"evaluation return {self.last_eval:.1f} reached {stop_return:.1f}"
         update_rate, step_rate = Rate(self.updates), Rate(self.steps)
         metrics: dict[str, float] = {}
         last_log = self.steps

@@ -1,0 +1,66 @@
+"""``coworld collect --policy dreamerv2``: trained-policy qualities, stop rules, and reruns of finished jobs."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import torch
+
+from coworld import envs
+from coworld.data import open_dataset
+from coworld.training.collect import collect_dreamerv2, default_stop_return
+
+FAST = ("train.prefill=100", "train.eval_episodes=1", "train.checkpoint_every=100")
+
+
+@pytest.fixture(autouse=True)
+def _one_thread(one_torch_thread: None) -> None:
+    pass
+
+
+def collect(out: Path, **kwargs):
+    options = {"preset": "tiny", "device": "cpu", "progress": False, "overrides": FAST, **kwargs}
+    return collect_dreamerv2("toy_reach", out, **options)
+
+
+def test_default_stop_return_is_the_medium_level_except_for_expert_data() -> None:
+    reference = envs.task_spec("toy_reach").reference_return
+    assert default_stop_return("toy_reach") == pytest.approx(reference / 3)
+    assert default_stop_return("toy_reach", "medium") == pytest.approx(reference / 3)
+    assert default_stop_return("toy_reach", "expert") is None
+
+
+def test_medium_quality_records_episodes_of_the_trained_policy(tmp_path: Path) -> None:
+    out = tmp_path / "toy_reach-medium.h5"
+    summary = collect(out, quality="medium", max_steps=300, episodes=3)
+    assert (summary.episodes, summary.steps) == (3, 150)  # toy_reach episodes are 50 steps
+    with open_dataset(out) as data:
+        assert data.complete and data.quality == "medium" and data.num_episodes == 3
+        collector = data.metadata["collector"]
+        assert collector["algorithm"] == "dreamerv2" and collector["training_steps"] == 300
+    # What the agent experienced while it learned is kept beside the dataset, not mixed into it.
+    with open_dataset(tmp_path / "toy_reach-medium.run" / "replay.h5") as replay:
+        assert replay.quality == "medium-replay" and replay.num_steps == 300 and replay.complete
+    # A rerun of the finished job with --resume changes nothing.
+    again = collect(out, quality="medium", max_steps=300, episodes=3, resume=True)
+    assert (again.episodes, again.steps) == (3, 150)
+    with open_dataset(out) as data:
+        assert data.num_episodes == 3
+
+
+def test_a_run_stopped_by_its_return_goal_is_not_extended_on_resume(tmp_path: Path) -> None:
+    out = tmp_path / "toy_reach-medium_replay.h5"
+    overrides = (*FAST, "train.eval_every=100")
+    # Any evaluation reaches a goal this low, so training stops at its first evaluation.
+    first = collect(out, max_steps=2000, stop_return=-1e9, overrides=overrides)
+    assert first.stop_reason.startswith("evaluation return") and first.steps < 2000
+    checkpoint = torch.load(out.with_name("toy_reach-medium_replay.run") / "checkpoint.pt", weights_only=True)
+    again = collect(out, max_steps=2000, stop_return=-1e9, overrides=overrides, resume=True)
+    assert again.steps == first.steps and again.stop_reason == first.stop_reason
+    assert (
+        torch.load(out.with_name("toy_reach-medium_replay.run") / "checkpoint.pt", weights_only=True)["updates"]
+        == checkpoint["updates"]
+    )
+    with open_dataset(out) as data:
+        assert data.complete and data.num_steps == first.steps
