@@ -14,9 +14,7 @@ from coworld.training.collect import collect_dreamerv2, default_stop_return
 FAST = ("train.prefill=100", "train.eval_episodes=1", "train.checkpoint_every=100")
 
 
-@pytest.fixture(autouse=True)
-def _one_thread(one_torch_thread: None) -> None:
-    pass
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def collect(out: Path, **kwargs):
@@ -55,12 +53,10 @@ def test_a_run_stopped_by_its_return_goal_is_not_extended_on_resume(tmp_path: Pa
     # Any evaluation reaches a goal this low, so training stops at its first evaluation.
     first = collect(out, max_steps=2000, stop_return=-1e9, overrides=overrides)
     assert first.stop_reason.startswith("evaluation return") and first.steps < 2000
-    checkpoint = torch.load(out.with_name("toy_reach-medium_replay.run") / "checkpoint.pt", weights_only=True)
+    checkpoint = out.with_name("toy_reach-medium_replay.run") / "checkpoint.pt"
+    updates = torch.load(checkpoint, weights_only=True)["updates"]
     again = collect(out, max_steps=2000, stop_return=-1e9, overrides=overrides, resume=True)
     assert again.steps == first.steps and again.stop_reason == first.stop_reason
-    assert (
-        torch.load(out.with_name("toy_reach-medium_replay.run") / "checkpoint.pt", weights_only=True)["updates"]
-        == checkpoint["updates"]
-    )
+    assert torch.load(checkpoint, weights_only=True)["updates"] == updates
     with open_dataset(out) as data:
         assert data.complete and data.num_steps == first.steps
