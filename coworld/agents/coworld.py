@@ -29,6 +29,7 @@ import torch
 import tqdm
 from torch import Tensor
 
+from coworld import interrupt
 from coworld.agents.dreamerv2 import DreamerV2
 from coworld.config import Config, to_dict
 from coworld.data import DatasetWriter, open_dataset
@@ -248,6 +249,7 @@ def train_coworld(job: Any, *, device: torch.device, resumed: bool, progress: bo
                 agent.target_batches = iter(dataset.sampler(config.train.batch_size, config.train.seq_len, seed=seed))
                 if progress_state["phase"] == "target":
                     for _ in range(cfg.target_updates):
+                        interrupt.check()
                         metrics = agent.train_target(next(agent.target_batches))
                     logger.log(metrics, agent.target.updates)
                     progress_state["phase"] = "source"

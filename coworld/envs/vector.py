@@ -3,12 +3,15 @@
 from __future__ import annotations
 
 import functools
+import os
 from typing import Any
 
 import gymnasium as gym
 
 from coworld.envs.registry import make, resolve_settings, task_spec
 from coworld.envs.render import ensure_gl_backend
+from coworld.interrupt import ignored_by_new_processes
+from coworld.text import count
 
 MP_CONTEXT = "spawn"
 """Workers start as fresh interpreters: no OpenGL/EGL or MuJoCo state is inherited from the parent (forking
@@ -30,6 +33,10 @@ def make_vector(name: str, num_envs: int, seed: int = 0, **overrides: Any) -> gy
 
     ``reset(seed=s)`` seeds env ``i`` with ``s + i``; ``reset()`` without a seed uses ``seed + i`` the first time.
     Bad names and overrides raise here, in the calling process.
+
+    Worker processes ignore SIGINT and SIGTERM: a Ctrl-C in a terminal reaches the whole process group,
+    and a worker that died of it would break the parent's next step. The parent stops (see :mod:`coworld.interrupt`)
+    and closes them; a worker whose parent was killed outright ends when its pipe closes.
     """
     if isinstance(num_envs, bool) or not isinstance(num_envs, int) or num_envs < 1:
         from coworld.errors import ConfigError
@@ -41,4 +48,27 @@ def make_vector(name: str, num_envs: int, seed: int = 0, **overrides: Any) -> gy
     if num_envs == 1:
         return gym.vector.SyncVectorEnv(env_fns, autoreset_mode=mode)
     ensure_gl_backend()  # workers inherit the environment variable
-    return gym.vector.AsyncVectorEnv(env_fns, shared_memory=True, context=MP_CONTEXT, autoreset_mode=mode)
+    with ignored_by_new_processes():  # the workers ignore SIGINT and SIGTERM
+        return gym.vector.AsyncVectorEnv(env_fns, shared_memory=True, context=MP_CONTEXT, autoreset_mode=mode)
+
+
+def available_cores() -> int:
+    """CPU cores this process may run on."""
+    if hasattr(os, "sched_getaffinity"):
+        return max(1, len(os.sched_getaffinity(0)))
+    return os.cpu_count() or 1
+
+
+def sensible_workers(requested: int, episodes: int | None = None) -> tuple[int, str]:
+    """``requested`` worker processes capped at the episodes to run and the cores available; and a note when capped.
+
+    More workers than episodes would idle, more than cores would only take turns (each is a whole interpreter with
+    its own simulator).
+    """
+    workers, why = requested, ""
+    if episodes is not None and workers > episodes:
+        workers, why = episodes, f"one per episode ({count(episodes, 'episode')} asked for)"
+    cores = available_cores()
+    if workers > cores:
+        workers, why = cores, f"one per CPU core ({count(cores, 'core')} available)"
+    return workers, (f"--workers {requested} capped to {workers}: {why}" if workers < requested else "")

@@ -19,7 +19,7 @@ from typing import Any, Protocol
 import numpy as np
 import tqdm
 
-from coworld import envs
+from coworld import envs, interrupt
 
 
 class Agent(Protocol):
@@ -142,6 +142,7 @@ def evaluate(
             ep_success = np.zeros(workers, dtype=bool)
             frames = [[obs[i]] for i in range(workers)]
             for _ in range(spec.episode_length):
+                interrupt.check()
                 action, state = agent.policy(obs, state, mode="eval", is_first=is_first)
                 if want_values:
                     value = np.asarray(agent.value(state), dtype=np.float64)  # type: ignore[attr-defined]
