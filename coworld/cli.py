@@ -60,7 +60,10 @@ class _LazyGroup(click.Group):
         with interrupt.handling_signals():  # from the start: importing a command can take seconds
             try:
                 return super().main(*args, **kwargs)
-            except interrupt.Interrupted as stop:
+            except (interrupt.Interrupted, Exception) as err:
+                stop = interrupt.stop_for(err)
+                if stop is None:
+                    raise
                 click.echo(f"\n{stop}" if sys.stderr.isatty() else str(stop), err=True)  # after the ^C
                 sys.exit(stop.exit_code)
 

@@ -46,10 +46,10 @@ def evaluate(ckpt, episodes, workers, seed, video, video_episodes, out, task, de
     check_writable(out_path.parent, "--out")
     if video:
         check_writable(Path(video).parent, "--video")
-    agent, info, config = load_trained_agent(Path(ckpt), device=device)
-    task = task or info["target"]
-    discount = config.actor_critic.discount if hasattr(agent, "value") else None
     with interrupt.explain(lambda: "no results were written (an evaluation does not resume); rerun the same command"):
+        agent, info, config = load_trained_agent(Path(ckpt), device=device)
+        task = task or info["target"]
+        discount = config.actor_critic.discount if hasattr(agent, "value") else None
         result, frames = run_eval(
             agent,
             task,
