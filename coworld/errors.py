@@ -38,3 +38,11 @@ class StorageError(CoworldError):
     def __init__(self, message: str, reason: str = "") -> None:
         super().__init__(message)
         self.reason = reason
+
+    @property
+    def disk_full(self) -> bool:
+        """The disk (or the user's quota, or the file size limit) has no room: freeing space lets a rerun continue."""
+        import errno
+        import os
+
+        return self.reason in {os.strerror(e) for e in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)}

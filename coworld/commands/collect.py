@@ -26,11 +26,13 @@ def _collect_random(options: dict[str, Any]) -> None:
     from coworld.data import collect_random
     from coworld.data.collect import default_dataset_path
     from coworld.envs.vector import sensible_workers
+    from coworld.storage import check_writable
 
     workers, note = sensible_workers(options["workers"], options["episodes"])
     if note:
         click.echo(f"note: {note}", err=True)
     out = options["out"] or default_dataset_path(options["task"], "random")
+    check_writable(out.parent, "--out")
     with _resumable(out):
         summary = collect_random(
             options["task"],
@@ -54,12 +56,14 @@ def _collect_random(options: dict[str, Any]) -> None:
 
 def _collect_dreamerv2(options: dict[str, Any]) -> None:
     from coworld.data.collect import default_dataset_path
+    from coworld.storage import check_writable
     from coworld.training.collect import collect_dreamerv2
 
     if options["workers"] != 1:
         raise CoworldError("--workers sets random collection; for dreamerv2 use --set train.envs=N")
     quality = options["quality"] or "medium-replay"
     out = options["out"] or default_dataset_path(options["task"], quality)
+    check_writable(out.parent, "--out")
     with _resumable(out, agent=True):
         summary = collect_dreamerv2(
             options["task"],
@@ -91,7 +95,8 @@ def _resumable(out: Path, agent: bool = False) -> Iterator[None]:
         with interrupt.explain(lambda: f"{_kept(out, agent)}; {RESUME}"):
             yield
     except StorageError as err:
-        raise StorageError(f"{err}; free space (or choose another --out), then {RESUME}", err.reason) from None
+        fix = "free space" if err.disk_full else "make it writable"
+        raise StorageError(f"{err}; {fix}, then {RESUME}", err.reason) from None
 
 
 def _kept(out: Path, agent: bool) -> str:

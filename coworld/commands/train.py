@@ -75,7 +75,8 @@ def train(target, source, dataset, algo, preset, logdir, seed, device, overrides
         with interrupt.explain(lambda: f"{_kept(job.logdir)}; {RESUME}"):
             summary = run_job(job, progress=progress)
     except StorageError as err:
-        raise StorageError(f"{err}; free space, then {RESUME}", err.reason) from None
+        fix = "free space" if err.disk_full else "make it writable"
+        raise StorageError(f"{err}; {fix}, then {RESUME}", err.reason) from None
     last = summary.get("last_eval_return")
     click.echo(f"done: {job.logdir}" + (f" (last evaluation return {last:.1f})" if last is not None else ""))
 

@@ -12,9 +12,9 @@ from typing import Any
 
 import gymnasium as gym
 
+from coworld import interrupt
 from coworld.envs.registry import make, resolve_settings, task_spec
 from coworld.envs.render import ensure_gl_backend
-from coworld import interrupt
 from coworld.interrupt import ignored_by_new_processes
 from coworld.text import count
 
