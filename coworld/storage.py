@@ -68,6 +68,20 @@ def check_writable(folder: str | os.PathLike[str], option: str) -> None:
         raise StorageError(f"cannot write to {folder} ({reason}); choose another {option}", reason) from None
 
 
+def write_text_atomically(path: str | os.PathLike[str], text: str) -> None:
+    """Write a whole text file under a temporary name in its folder, then rename it into place: a failed write
+    (or a kill) leaves the previous file, or none, never half of one."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        tmp.write_text(text)
+        fsync_path(tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
 def fsync_path(path: str | os.PathLike[str]) -> None:
     """Flush a closed file's data to the disk (before renaming it into place)."""
     fd = os.open(path, os.O_RDONLY)

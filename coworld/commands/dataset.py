@@ -105,7 +105,9 @@ def merge(inputs: tuple[Path, ...], out: Path, quality: str | None, force: bool,
     existed = out.exists()
     untouched = f"{out} is as it was" if existed else f"nothing was written to {out}"
     with interrupt.explain(lambda: f"{untouched}; run the merge again"):
-        merge_datasets(list(inputs), out, quality=quality, force=force, compression=compression, progress=True)
+        merge_datasets(
+            list(inputs), out, quality=quality, force=force, compression=compression, progress=sys.stderr.isatty()
+        )
     with open_dataset(out) as data:
         click.echo(
             f"wrote {out}: {data.quality}, {count(data.num_episodes, 'episode')}, {count(data.num_steps, 'step')}"

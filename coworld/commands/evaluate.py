@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import sys
 from pathlib import Path
 
 import click
@@ -32,7 +33,7 @@ def evaluate(ckpt, episodes, workers, seed, video, video_episodes, out, task, de
     """
     from coworld.envs.vector import sensible_workers
     from coworld.errors import CoworldError
-    from coworld.storage import check_writable
+    from coworld.storage import check_writable, write_text_atomically
     from coworld.training.evaluate import evaluate as run_eval
     from coworld.training.evaluate import load_trained_agent, write_video
 
@@ -58,12 +59,12 @@ def evaluate(ckpt, episodes, workers, seed, video, video_episodes, out, task, de
             seed=seed,
             discount=discount,
             video_episodes=video_episodes if video else 0,
-            progress=True,
+            progress=sys.stderr.isatty(),
         )
     result.extra.update(algo=info["algo"], checkpoint=str(ckpt), seed=seed)
     click.echo(result.summary())
     try:
-        result.to_json(out_path)
+        write_text_atomically(out_path, json.dumps(result.to_dict(), indent=2) + "\n")
     except OSError as err:
         click.echo(json.dumps(result.to_dict()))  # the record the file would have held
         raise _refused(err, f"the results to {out_path}", "printed above instead") from None

@@ -90,14 +90,14 @@ def _check_paths(inputs: list[Path], out: Path, force: bool) -> None:
         raise DatasetError("merge needs at least two input datasets")
     if out.is_dir():
         raise DatasetError(f"--out {out} is a folder; name the merged dataset file, e.g. {out / 'merged.h5'}")
+    if out.exists() and _identity(out) in {_identity(path) for path in inputs}:
+        raise DatasetError(f"the output {out} is also an input; write the merge to a new file")
     seen: dict[object, Path] = {}
     for path in inputs:
         key = _identity(path)
         if key in seen:
             raise DatasetError(f"{path} is given twice (as {seen[key]} and {path}); list each input once")
         seen[key] = path
-        if out.exists() and key == _identity(out):
-            raise DatasetError(f"the output {out} is also an input; write the merge to a new file")
     if out.exists() and not force:
         raise DatasetError(
             f"{out} already exists; choose another --out, or pass --force to replace it once the merge is whole"
