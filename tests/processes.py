@@ -72,16 +72,22 @@ def wait_for_episodes(proc: subprocess.Popen[str], count: int, timeout: float = 
     raise AssertionError("child too slow")
 
 
-def wait_for(condition: Any, proc: subprocess.Popen[str], timeout: float = 300.0, what: str = "") -> None:
-    """Poll ``condition()`` until it holds; fail if the process ends first or time runs out."""
+def wait_for(
+    condition: Any, proc: subprocess.Popen[str], timeout: float = 300.0, what: str = "", or_end: bool = False
+) -> bool:
+    """Poll ``condition()`` until it holds (True). A process that ends first fails the test, or with ``or_end`` returns
+    False once it ended with exit code 0."""
     deadline = time.monotonic() + timeout
     while not condition():
         if proc.poll() is not None:
             out, err = proc.communicate()
+            if or_end and proc.returncode == 0:
+                return False
             raise AssertionError(f"the process ended (exit {proc.returncode}) before {what}: {err[-2000:]}")
         if time.monotonic() > deadline:
             raise AssertionError(f"timed out waiting for {what}")
         time.sleep(0.05)
+    return True
 
 
 def kill(proc: subprocess.Popen[str]) -> None:

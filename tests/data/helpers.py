@@ -122,6 +122,17 @@ def episode_digests(path: Path) -> list[str]:
     return digests
 
 
+def committed_episodes(path: Path) -> int:
+    """The committed episode count of a dataset another process may be writing (0 while unreadable)."""
+    import h5py
+
+    try:
+        with h5py.File(path, "r", locking=False) as f:
+            return int(f.attrs.get("num_episodes", 0))
+    except (OSError, KeyError, RuntimeError):
+        return 0
+
+
 def folder_state(folder: Path) -> dict[str, bytes]:
     """Every file under ``folder`` (relative name -> bytes), to show a command left the folder as it was."""
     return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
