@@ -130,6 +130,7 @@ def handling_signals() -> Iterator[None]:
         yield
         return
     previous = {sig: signal.getsignal(sig) for sig in SIGNALS}
+    filters = warnings.filters[:]
     _state = _State()
     for sig in SIGNALS:
         if previous[sig] is not signal.SIG_IGN:
@@ -142,6 +143,7 @@ def handling_signals() -> Iterator[None]:
             _state.timer.cancel()
         for sig, handler in previous.items():
             signal.signal(sig, handler if handler is not None else signal.SIG_DFL)
+        warnings.filters[:] = filters
         _state = _State()
 
 

@@ -10,6 +10,8 @@ from __future__ import annotations
 import errno
 import os
 import re
+import resource
+import shutil
 import tempfile
 from pathlib import Path
 
@@ -40,6 +42,28 @@ def failure_errno(err: BaseException) -> int | None:
         return err.errno
     found = _HDF5_ERRNO.search(str(err))
     return int(found.group(1)) if found else None
+
+
+def room_problem(path: str | os.PathLike[str], needed: int) -> OSError | None:
+    """Why the file at ``path`` cannot grow by ``needed`` bytes, as the OSError a write would meet, or None.
+
+    Checked: the free space of its file system and this process's file size limit (RLIMIT_FSIZE). Asking first
+    matters: HDF5 extends a file to its allocated size when it closes it, which a size limit also refuses, and
+    such a file no longer opens.
+    """
+    path = Path(path)
+    size = path.stat().st_size if path.exists() else 0
+    free = shutil.disk_usage(path.parent).free
+    if free < needed:
+        return OSError(errno.ENOSPC, f"{os.strerror(errno.ENOSPC)} ({_mib(needed)} needed, {_mib(free)} free)")
+    limit = resource.getrlimit(resource.RLIMIT_FSIZE)[0]
+    if limit != resource.RLIM_INFINITY and size + needed > limit:
+        return OSError(errno.EFBIG, f"{os.strerror(errno.EFBIG)} (the file size limit is {_mib(limit)})")
+    return None
+
+
+def _mib(n: int) -> str:
+    return f"{n / 2**20:,.1f} MiB"
 
 
 def os_error_text(err: OSError) -> str:

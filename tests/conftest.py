@@ -116,11 +116,13 @@ def _unmount(path: Path) -> None:
 
 
 class SmallDisk:
-    """A folder with room for about ``size`` bytes: a tmpfs of that size as root, else a per-file size limit for the
-    processes run with :meth:`popen` and for the code inside :meth:`limited`. :meth:`grow` frees space."""
+    """A folder with room for about ``size`` bytes: a tmpfs of that size as root, else a limit of ``file_size`` bytes
+    (default ``size``) per file for the processes run with :meth:`popen` and for the code inside :meth:`limited`.
+    :meth:`grow` frees space."""
 
-    def __init__(self, path: Path, size: int) -> None:
-        self.path, self.size, self.mounted = path, size, ROOT
+    def __init__(self, path: Path, size: int, file_size: int | None = None) -> None:
+        self.path, self.mounted = path, ROOT
+        self.size = size if ROOT else file_size or size
         path.mkdir(parents=True)
         if self.mounted:
             _mount("-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(path))
@@ -166,12 +168,12 @@ class SmallDisk:
 
 
 @pytest.fixture
-def small_disk(tmp_path: Path) -> Iterator[Callable[[int], SmallDisk]]:
-    """``small_disk(bytes)`` -> a :class:`SmallDisk` under tmp_path, released after the test."""
+def small_disk(tmp_path: Path) -> Iterator[Callable[..., SmallDisk]]:
+    """``small_disk(bytes, file_size=None)`` -> a :class:`SmallDisk` under tmp_path, released after the test."""
     disks: list[SmallDisk] = []
 
-    def make(size: int) -> SmallDisk:
-        disks.append(SmallDisk(tmp_path / f"disk{len(disks)}", size))
+    def make(size: int, file_size: int | None = None) -> SmallDisk:
+        disks.append(SmallDisk(tmp_path / f"disk{len(disks)}", size, file_size))
         return disks[-1]
 
     yield make

@@ -126,7 +126,7 @@ def test_a_full_disk_during_training_keeps_the_last_checkpoint_and_the_rerun_fin
     small_disk, processes: ModuleType, toy_dataset_writer, tmp_path: Path
 ) -> None:
     dataset = toy_dataset_writer(tmp_path / "toy.h5", "toy_reach_shifted")
-    disk = small_disk(8 * MiB)  # room for one tiny DreamerV2 checkpoint (about 5 MB), not for its replacement
+    disk = small_disk(8 * MiB, file_size=4 * MiB)  # room for one tiny DreamerV2 checkpoint (5 MB), not for two
     run = disk.path / "run"
     args = [*TRAIN_DV2, "--dataset", str(dataset), "--logdir", str(run)]
     line = _one_error_line(processes.run_cli(*args, **disk.popen()))

@@ -6,12 +6,15 @@ the episode being written: readers trust only the committed counters, and a resu
 A lock file (:mod:`coworld.data.lock`) keeps a second writer out.
 
 A write the system refuses (a full disk, a read-only location) raises :class:`~coworld.errors.StorageError` and
-leaves the file as the last commit left it. The writer keeps every dataset open for its whole life: HDF5 writes
-buffered data when a dataset is closed, and h5py cannot raise from the deallocator of a short-lived dataset object,
-so a failed write would only print "Exception ignored" while the counters were committed over data that never
-reached the disk. Open, the buffered data is written by the ``flush`` that precedes each commit, which raises. After a
-refused write the writer touches the file no more (even shrinking it back could drop committed chunks from HDF5's
-index) and never marks it complete; a resumed writer drops the uncommitted rows.
+leaves the file as the last commit left it. Before each episode the writer asks whether the file has room for it
+(:func:`~coworld.storage.room_problem`), so a full disk is usually met before anything is written. A write that fails
+anyway (another process filled the disk meanwhile) must fail at once: HDF5 keeps chunks in a per-dataset cache that
+it writes when the dataset is closed, and h5py cannot raise from the deallocator of a short-lived dataset object, so
+a failed write used to print only "Exception ignored" while the counters were committed over data that never reached
+the disk. So the chunk cache is off (each write reaches the file in the call that makes it, and raises there), and
+the datasets stay open for the writer's life. After a refused write the writer touches the file no more (even
+shrinking it back can drop committed chunks from HDF5's index) and never marks it complete; a resumed writer drops
+the uncommitted rows.
 """
 
 from __future__ import annotations
@@ -50,7 +53,7 @@ from coworld.data.schema import (
     structural_problems,
 )
 from coworld.errors import ConfigError, DatasetError, StorageError
-from coworld.storage import WRITE_ERRNOS, failure_errno, failure_reason
+from coworld.storage import WRITE_ERRNOS, failure_errno, failure_reason, room_problem
 from coworld.text import count
 
 _VERSIONED_PACKAGES = ("coworld", "numpy", "h5py", "torch", "gymnasium", "mujoco", "dm-control", "metaworld")
@@ -278,14 +281,24 @@ class DatasetWriter:
         self._nodes.update({f"episodes/{name}": f["episodes"][name] for name in EPISODE_FIELDS})
         self._nodes.update({f"infos/{name}": node for name, node in f["infos"].items()})
 
+    def _bytes_needed(self, obs: np.ndarray, act: np.ndarray, extras: dict[str, np.ndarray]) -> int:
+        """An upper bound of the bytes an episode adds to the file: its raw data, a rewritten partial chunk of each
+        frame dataset (rows and final frames), and room for HDF5's own records."""
+        frame = int(np.prod(self.image_shape))
+        raw = obs.nbytes + act.nbytes + len(act) * 16 + sum(value.nbytes for value in extras.values())
+        return raw + (FRAME_CHUNK + 1) * frame + 2**20
+
     def _refused(self, err: BaseException, *, opening: bool = False) -> StorageError:
         """The one-line error of a write the system refused; after it the writer writes nothing more."""
         reason = failure_reason(err)
+        text = reason  # or the refusal of room_problem, which says how much room there was
+        if isinstance(err, OSError) and err.strerror and err.strerror.startswith(reason):
+            text = err.strerror
         if opening:
-            return StorageError(f"cannot write {self.path}: {reason}", reason)
+            return StorageError(f"cannot write {self.path}: {text}", reason)
         committed = self.num_episodes
         kept = f"{count(committed, 'committed episode')} {'is' if committed == 1 else 'are'} intact"
-        self._failure = StorageError(f"cannot write {self.path}: {reason}; {kept}", reason)
+        self._failure = StorageError(f"cannot write {self.path}: {text}; {kept}", reason)
         return self._failure
 
     @staticmethod
@@ -366,6 +379,9 @@ class DatasetWriter:
             raise DatasetError("episode has non-finite actions or rewards; refusing to store it")
         extras = self._check_infos(infos or {}, t)
         n, e = self.num_steps, self.num_episodes
+        problem = room_problem(self.path, self._bytes_needed(obs, act, extras))
+        if problem is not None:  # refused before a byte is written: the file stays as the last commit left it
+            raise self._refused(problem) from None
         try:
             self._write_episode(f, n, e, obs, act, rew, bool(terminated), extras)
         except (OSError, RuntimeError) as err:
