@@ -4,7 +4,9 @@ Both agents are DreamerV2 (:class:`coworld.agents.dreamerv2.DreamerV2`). The thr
 (:mod:`coworld.losses.coworld`) enter through the DreamerV2 update's hooks:
 
 * target world-model step (Alg. 1 line 9, Eq. 3): ``+ beta2 * KL[sg(e_S(o_T)) || e_T(o_T)]`` on the target
-  batch, the source model run over the same target frames without gradient;
+  batch, the source model run over the same target frames without gradient (``align_on='latent'``: the
+  posteriors' KL averaged over batch and time; ``'embedding'``: the release's softmaxed conv embeddings,
+  summed over time and averaged over the batch as its ``KLDivLoss(reduction="batchmean")`` does);
 * target critic step (line 10, Eq. 6): ``+ alpha * max(zeta * v_T(z), sg(v_S(z)))`` on the target agent's
   imagined states, ``v_S`` being the source critic fed the target features;
 * source world-model step (lines 13-15, Eqs. 4-5): the source model is also run over a target batch and its
@@ -12,7 +14,9 @@ Both agents are DreamerV2 (:class:`coworld.agents.dreamerv2.DreamerV2`). The thr
 
 Schedule: pretrain the source agent online for ``coworld.pretrain_steps`` environment steps, then
 ``coworld.iterations`` times: ``target_updates`` (K1) target updates on dataset batches, then
-``source_updates`` (K2) source updates interleaved with source environment steps at the train ratio.
+``source_updates`` (K2) source updates interleaved with source environment steps at the train ratio. The
+source episodes run on across phase boundaries (the pretraining cut and the pauses leave no mark in the
+source replay).
 A checkpoint is written after every phase; a killed run resumes from the last one. Each target phase draws
 its batches from a sampler seeded by (seed, iteration), so a resumed run sees the batches an uninterrupted one
 would have.
@@ -83,10 +87,12 @@ class CoWorld:
 
             def extra(_: dict[str, Tensor], aux: dict[str, Any]) -> dict[str, Tensor]:
                 if cfg.align_on == "latent":
-                    term = alignment_loss(source_post["logits"], aux["post"]["logits"])
+                    # averaged over (B, T) like every other DreamerV2 world-model term
+                    term = alignment_loss(source_post["logits"], aux["post"]["logits"]).mean()
                 else:
-                    term = embedding_alignment_loss(source_embed, aux["embed"])
-                return {"align": cfg.beta2 * term.mean()}
+                    # the release's KLDivLoss(reduction="batchmean") on (B, T, E): summed over T, divided by B
+                    term = embedding_alignment_loss(source_embed, aux["embed"]).sum(dim=1).mean()
+                return {"align": cfg.beta2 * term}
 
         metrics, post = self.target.train_world_model(batch_t, extra)
         if cfg.align:
@@ -236,7 +242,7 @@ def train_coworld(job: Any, *, device: torch.device, resumed: bool, progress: bo
 
         try:
             if progress_state["phase"] == "pretrain":
-                source_trainer.run(max_steps=cfg.pretrain_steps, progress=progress)
+                source_trainer.run(max_steps=cfg.pretrain_steps, progress=progress, cut_episodes=False)
                 progress_state["phase"] = "target"
                 save()
             bar = tqdm.tqdm(

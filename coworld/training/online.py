@@ -9,7 +9,14 @@ dataset, and the step count continues from the dataset's row count, so no episod
 (the episodes that were running at the kill are lost, as promised by the dataset writer).
 
 Vector environments follow Gymnasium's default NEXT_STEP autoreset: after a step that ends an episode, the
-next ``step`` of that environment ignores its action and returns the first observation of a new episode.
+next ``step`` of that environment ignores its action and returns the first observation of a new episode. The
+acting side agrees with training on where episodes start: the policy is told ``is_first`` with the first frame
+of every episode (and only with it), the frame the replay stores as ``is_first``.
+
+Train ratio: after ``train.prefill`` random steps the agent makes ``train.pretrain_updates`` updates at once
+(DreamerV2's ``pretrain``), then one update every ``train.train_every`` environment steps
+(:meth:`OnlineTrainer.updates_due`). A resumed run keeps that ratio from its restored state on rather than
+catching up the updates lost with the killed process.
 """
 
 from __future__ import annotations
@@ -82,6 +89,8 @@ class OnlineTrainer:
         self.replay = Replay(seed=config.seed)
         self.steps = writer.num_steps
         self.updates = 0
+        self._skipped_updates = 0
+        """Updates a resumed run skips rather than catching up (see :meth:`_skip_missed_updates`)."""
         self.last_eval: float | None = None
         self._updates_per_s: float | None = None
         self.last_eval_step = -1
@@ -134,12 +143,16 @@ class OnlineTrainer:
         stop_return: float | None = None,
         progress: bool = True,
         should_pause: Callable[[OnlineTrainer], bool] | None = None,
+        cut_episodes: bool = True,
     ) -> OnlineResult:
-        """Step, record and train until ``max_steps`` rows exist or evaluation reaches ``stop_return``.
+        """Step, record and train until ``max_steps`` steps are taken or evaluation reaches ``stop_return``.
 
-        ``should_pause`` is asked after every step; returning True ends this call without closing the
-        environments, and the next call continues the running episodes (CoWorld interleaves its source and
-        target phases this way).
+        ``cut_episodes`` (collection): stop at exactly ``max_steps`` rows, ending the running episodes there as
+        time limits. Without it (CoWorld's source pretraining) the call stops once ``max_steps`` is reached (at
+        most ``envs - 1`` steps later) and the running episodes continue in the next call, so the phase boundary
+        leaves no mark in the data. ``should_pause`` is asked after every step; returning True ends this call
+        without closing the environments, and the next call continues the running episodes (CoWorld interleaves
+        its source and target phases this way).
         """
         cfg = self.config.train
         if self._venv is None:
@@ -153,6 +166,7 @@ class OnlineTrainer:
             self._running_success: list[list[float]] = [[] for _ in range(n)]
             for i in range(n):
                 self._record(i, self._obs[i], np.zeros(self.spec.action_size, np.float32), 0.0, True, False, False)
+        self._skip_missed_updates()
         bar = tqdm.tqdm(
             total=max_steps, initial=min(self.steps, max_steps), unit="step", disable=not progress, dynamic_ncols=True
         )
@@ -171,13 +185,17 @@ class OnlineTrainer:
                     action = np.clip(action + cfg.expl_noise * np.random.randn(*action.shape), -1, 1)
                 action = action.astype(np.float32)
                 obs, reward, terminated, truncated, info = self._venv.step(action)
-                keep = min(n, max_steps - self.steps)
-                final = self.steps + keep >= max_steps  # cut the running episodes at exactly max_steps rows
+                # With cut_episodes, the run ends at exactly max_steps rows and the running episodes end there
+                # (stored as time limits); without it, every env's step is kept and the episodes run on.
+                keep = min(n, max_steps - self.steps) if cut_episodes else n
+                final = cut_episodes and self.steps + keep >= max_steps
                 ended = False
                 for i in range(n):
-                    if self._is_last[i]:  # NEXT_STEP autoreset: this step started a new episode
+                    if self._is_last[i]:  # NEXT_STEP autoreset: this step only reset env i; obs[i] is o_0
                         self._record(i, obs[i], np.zeros_like(action[i]), 0.0, True, False, False)
+                        self._is_first[i] = True  # the next action starts a new latent from o_0, and only there
                         continue
+                    self._is_first[i] = False
                     if i >= keep:
                         continue
                     success = float(info["success"][i]) if "success" in info else None
@@ -188,7 +206,6 @@ class OnlineTrainer:
                     self.steps += 1
                     bar.update(1)
                 self._obs = obs
-                self._is_first = self._is_last.copy()
                 metrics.update(self._train_due())
                 if self.steps - last_log >= cfg.log_every and metrics:
                     # Rates over this log window, evaluation and checkpoint time included.
@@ -273,12 +290,34 @@ class OnlineTrainer:
             info["eval_return"] = f"{self.last_eval:.1f}"
         return info
 
+    def updates_due(self, steps: int) -> int:
+        """Updates an uninterrupted run has made after ``steps`` environment steps: none during the random
+        prefill; at the end of it ``train.pretrain_updates`` extra ones (DreamerV2's ``pretrain``) plus the
+        first regular one; then one every ``train.train_every`` steps."""
+        cfg = self.config.train
+        if steps < cfg.prefill:
+            return 0
+        return cfg.pretrain_updates + (steps - cfg.prefill) // cfg.train_every + 1
+
+    def _skip_missed_updates(self) -> None:
+        """Keep the train ratio from here on instead of catching up.
+
+        After a resume the agent comes from its last checkpoint, while the steps recorded after that checkpoint
+        stay in the replay; the updates made in between were lost with the process. Catching them up would be a
+        burst of updates with no environment step between them, which an uninterrupted run never makes. So the
+        missed updates are skipped: updates and steps interleave at ``train_every`` from the restored state on.
+        In an uninterrupted run (and between CoWorld's phases) nothing is missed and this changes nothing.
+        """
+        missed = self.updates_due(self.steps) - self._skipped_updates - self.updates
+        if missed > 0:
+            self._skipped_updates += missed
+
     def _train_due(self) -> dict[str, float]:
         cfg = self.config.train
         metrics: dict[str, float] = {}
         if self.steps < cfg.prefill or not self.replay.episodes:
             return metrics
-        while self.updates * cfg.train_every < self.steps - cfg.prefill + cfg.train_every:
+        while self.updates < self.updates_due(self.steps) - self._skipped_updates:
             batch = self.replay.sample(cfg.batch_size, cfg.seq_len)
             metrics = {f"{self.prefix}{k}": v for k, v in self.agent.train(batch).items()}
             self.updates += 1
