@@ -44,13 +44,12 @@ class DreamerCollectSummary:
 
 
 def default_stop_return(task: str, quality: str = "medium-replay") -> float | None:
-    """When training stops early: at the medium level, a third of the task's reference return, for medium-replay
-    and medium data; never for expert data (the agent trains for all its steps). None where no reference is
-    known."""
-    reference = envs.task_spec(task).reference_return
-    if quality == "expert" or reference is None:
+    """When training stops early: at the medium level, a third of the task's reference return
+    (:attr:`~coworld.envs.TaskSpec.medium_return`, ``coworld tasks`` lists it), for medium-replay and medium data;
+    never for expert data (the agent trains for all its steps). None where no reference is known."""
+    if quality == "expert":
         return None
-    return reference / 3.0
+    return envs.task_spec(task).medium_return
 
 
 def collect_dreamerv2(
