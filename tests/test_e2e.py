@@ -131,7 +131,8 @@ def test_offline_dreamerv2_baseline(toy_dataset, tmp_path):
     results = []
     for threads, workers in (("1", "1"), ("2", "2")):
         out = tmp_path / f"eval-{threads}-{workers}.json"
-        cli("eval", "--ckpt", str(run), "--episodes", "3", "--threads", threads, "--workers", workers, "--out", str(out))
+        args = ("--episodes", "3", "--threads", threads, "--workers", workers, "--out", str(out))
+        cli("eval", "--ckpt", str(run), *args)
         results.append(json.loads(out.read_text()))
     assert results[0]["returns"] == results[1]["returns"]
     assert results[0]["value_estimate"] == results[1]["value_estimate"]

@@ -33,7 +33,9 @@ def tasks() -> None:
         click.echo("  ".join(cell.ljust(width) for cell, width in zip(row[:-1], widths, strict=True)) + "  " + row[-1])
     click.echo("\nepisode: agent steps per episode; repeat: simulator steps per agent step.")
     click.echo("random: mean return of uniform random actions; reference: best return known to be reachable;")
-    click.echo("medium: a third of it, where `coworld collect` stops a medium-replay dataset (--stop-return overrides).")
+    click.echo(
+        "medium: a third of it, where `coworld collect` stops a medium-replay dataset (--stop-return overrides)."
+    )
     click.echo("\nwhere the references come from:")
     sources: dict[str, list[str]] = {}
     for t in TASKS.values():

@@ -7,7 +7,7 @@ one of their tasks, choosing headless EGL rendering if ``MUJOCO_GL`` is unset.
 >>> env = make("walker_downhill", seed=0)          # obs (64, 64, 3) uint8, action (6,) in [-1, 1]
 """
 
-from coworld.envs.registry import PAIRS, TASKS, EnvSettings, TaskSpec, make, task_spec
+from coworld.envs.registry import PAIRS, TASKS, EnvSettings, TaskSpec, make, paired_source, task_spec
 from coworld.envs.vector import make_vector
 
-__all__ = ["PAIRS", "TASKS", "EnvSettings", "TaskSpec", "make", "make_vector", "task_spec"]
+__all__ = ["PAIRS", "TASKS", "EnvSettings", "TaskSpec", "make", "make_vector", "paired_source", "task_spec"]

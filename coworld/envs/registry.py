@@ -62,6 +62,13 @@ class TaskSpec:
     """Where ``reference_return`` comes from, in a few words."""
 
     @property
+    def embodiment(self) -> str:
+        """The body the agent controls: ``walker``/``cheetah`` (DMC), ``sawyer`` (every Meta-World task), ``dot``."""
+        if self.family == "dmc":
+            return self.name.split("_")[0]
+        return {"metaworld": "sawyer", "toy": "dot"}[self.family]
+
+    @property
     def medium_return(self) -> float | None:
         """The medium level: a third of ``reference_return`` (where medium-replay collection stops)."""
         return None if self.reference_return is None else self.reference_return / 3.0
@@ -183,6 +190,11 @@ PAIRS: tuple[tuple[str, str], ...] = (
     ("toy_reach", "toy_reach_shifted"),
 )
 """(source, target) pairs: the paper's DMC and Meta-World transfer settings, and the toy pair."""
+
+
+def paired_source(target: str) -> str | None:
+    """The source task the paper pairs with ``target`` (:data:`PAIRS`), or None where it pairs none."""
+    return next((source for source, paired in PAIRS if paired == target), None)
 
 
 def task_spec(name: str) -> TaskSpec:

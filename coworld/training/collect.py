@@ -15,7 +15,7 @@ whole episode.
 from __future__ import annotations
 
 import shutil
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -29,7 +29,7 @@ from coworld.data.collect import dataset_fields
 from coworld.errors import CoworldError, DatasetError
 from coworld.training.logger import Logger
 from coworld.training.online import OnlineTrainer
-from coworld.training.run import prepare_run_dir, resolve_device, seed_everything
+from coworld.training.run import prepare_run_dir, preset_warnings, resolve_device, seed_everything
 
 TRAINED_QUALITIES = ("medium-replay", "medium", "expert")
 
@@ -68,8 +68,12 @@ def collect_dreamerv2(
     force: bool = False,
     compression: str = "gzip",
     progress: bool = True,
+    warn: Callable[[str], None] | None = None,
 ) -> DreamerCollectSummary:
-    """Train DreamerV2 online in ``task`` and write the dataset ``out`` (see the module docstring)."""
+    """Train DreamerV2 online in ``task`` and write the dataset ``out`` (see the module docstring).
+
+    ``warn`` receives one-line warnings (the paper preset on a CPU) once the request is checked, before any work.
+    """
     if quality not in TRAINED_QUALITIES:
         raise CoworldError(f"the dreamerv2 collector makes {', '.join(TRAINED_QUALITIES)} datasets, not {quality!r}")
     spec = envs.task_spec(task)
@@ -84,6 +88,8 @@ def collect_dreamerv2(
         stop_return = default_stop_return(task, quality)
     limit = max_steps if max_steps is not None else config.train.steps
     info = {"task": task, "quality": quality, "dataset": str(out), "max_steps": limit, "stop_return": stop_return}
+    for message in preset_warnings(preset, config.device) if warn is not None else ():
+        warn(message)
     resumed = prepare_run_dir(run_dir, config, info)
     seed_everything(config.seed)
     from coworld.agents.dreamerv2 import DreamerV2
