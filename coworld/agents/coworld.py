@@ -30,7 +30,6 @@ from typing import Any
 
 import numpy as np
 import torch
-import tqdm
 from torch import Tensor
 
 from coworld.agents.dreamerv2 import DreamerV2
@@ -47,8 +46,9 @@ from coworld.losses.coworld import (
 )
 from coworld.training.checkpoint import CHECKPOINT_NAME, load_checkpoint, rng_state, save_checkpoint, set_rng_state
 from coworld.training.evaluate import evaluate
-from coworld.training.logger import Logger
+from coworld.training.logger import Logger, Rate
 from coworld.training.online import OnlineTrainer
+from coworld.training.progress import progress_bar
 
 CHECKPOINT_KIND = "coworld"
 UNBOUNDED = 2**62  # source phases end by pausing after K2 updates, never by a step limit
@@ -180,6 +180,14 @@ class _SourceLearner:
         self.coworld.source.load_state_dict(state)
 
 
+def _show(bar: Any, state: Mapping[str, Any], iterations: int) -> None:
+    """The progress bar's postfix: iteration, phase and the last evaluation return."""
+    postfix = {"iteration": f"{int(state['iteration']) + 1}/{iterations}", "phase": state["phase"]}
+    if state["last_eval"] is not None:
+        postfix["eval_return"] = f"{state['last_eval']:.1f}"
+    bar.set_postfix(postfix)
+
+
 def train_coworld(job: Any, *, device: torch.device, resumed: bool, progress: bool = True) -> dict[str, Any]:
     """Run Algorithm 1 for a checked :class:`coworld.training.train.TrainJob`; resumes its run folder."""
     config: Config = job.config
@@ -208,7 +216,7 @@ def train_coworld(job: Any, *, device: torch.device, resumed: bool, progress: bo
             logdir=logdir / "source",
             writer=writer,
             logger=logger,
-            metric_prefix="",
+            step_unit_prefix="source_",
         )
         # restore: the combined checkpoint once past pretraining, else the pretraining checkpoint
         source_trainer.restore()
@@ -245,26 +253,39 @@ def train_coworld(job: Any, *, device: torch.device, resumed: bool, progress: bo
                 source_trainer.run(max_steps=cfg.pretrain_steps, progress=progress, cut_episodes=False)
                 progress_state["phase"] = "target"
                 save()
-            bar = tqdm.tqdm(
-                total=cfg.iterations, initial=progress_state["iteration"], unit="iter", disable=not progress
+            per_iteration = cfg.target_updates + cfg.source_updates
+            done = progress_state["iteration"] * per_iteration
+            done += cfg.target_updates if progress_state["phase"] == "source" else 0
+            bar = progress_bar(
+                total=cfg.iterations * per_iteration, initial=done, desc="coworld", unit="updates", enabled=progress
             )
+            log_every = max(1, min(config.train.log_every, cfg.target_updates))
             while progress_state["iteration"] < cfg.iterations:
                 iteration = int(progress_state["iteration"])
+                _show(bar, progress_state, cfg.iterations)
                 seed = config.seed + 1000 * (iteration + 1)
                 agent.target_batches = iter(dataset.sampler(config.train.batch_size, config.train.seq_len, seed=seed))
                 if progress_state["phase"] == "target":
-                    for _ in range(cfg.target_updates):
+                    rate = Rate(agent.target.updates)
+                    for i in range(cfg.target_updates):
                         metrics = agent.train_target(next(agent.target_batches))
-                    logger.log(metrics, agent.target.updates)
+                        bar.update(1)
+                        if (i + 1) % log_every == 0 or i + 1 == cfg.target_updates:
+                            metrics["target/perf/updates_per_s"] = rate(agent.target.updates)
+                            logger.log(metrics, agent.target.updates, unit="target_update")
                     progress_state["phase"] = "source"
                     save()
                 if progress_state["phase"] == "source":
                     goal = source_trainer.updates + cfg.source_updates
-                    source_trainer.run(
-                        max_steps=UNBOUNDED,
-                        progress=False,
-                        should_pause=lambda trainer, goal=goal: trainer.updates >= goal,
-                    )
+                    counted = [source_trainer.updates]
+
+                    def pause(trainer: OnlineTrainer, goal: int = goal, counted: list[int] = counted) -> bool:
+                        bar.update(trainer.updates - counted[0])
+                        counted[0] = trainer.updates
+                        return trainer.updates >= goal
+
+                    _show(bar, progress_state, cfg.iterations)
+                    source_trainer.run(max_steps=UNBOUNDED, progress=False, should_pause=pause)
                     if (iteration + 1) % cfg.eval_every == 0 or iteration + 1 == cfg.iterations:
                         result, _ = evaluate(
                             agent,
@@ -275,12 +296,10 @@ def train_coworld(job: Any, *, device: torch.device, resumed: bool, progress: bo
                             discount=config.actor_critic.discount,
                         )
                         progress_state["last_eval"] = result.mean
-                        metrics = result.metrics()
-                        logger.log(metrics, agent.target.updates)
-                        bar.set_postfix(eval_return=f"{result.mean:.1f}")
+                        logger.log(result.metrics(), agent.target.updates, unit="target_update")
                     progress_state.update(iteration=iteration + 1, phase="target")
                     save()
-                    bar.update(1)
+                    _show(bar, {**progress_state, "iteration": iteration}, cfg.iterations)
             bar.close()
         finally:
             source_trainer.close()

@@ -20,9 +20,9 @@ from typing import Any, Protocol
 
 import numpy as np
 import torch
-import tqdm
 
 from coworld import envs
+from coworld.training.progress import progress_bar
 
 
 class Agent(Protocol):
@@ -199,7 +199,7 @@ def evaluate(
     trues: list[float] = []
     videos: list[np.ndarray] = []
     venv = envs.make_vector(task, workers, seed=seed)
-    bar = tqdm.tqdm(total=episodes, desc=f"eval {task}", unit="ep", disable=not progress, leave=False)
+    bar = progress_bar(total=episodes, desc=f"eval {task}", unit="episodes", enabled=progress, leave=False)
     devices = [torch.cuda.current_device()] if cuda else []
     try:
         with torch.random.fork_rng(devices=devices):

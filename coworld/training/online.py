@@ -27,7 +27,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import tqdm
 
 from coworld import envs
 from coworld.config import Config, to_dict
@@ -35,6 +34,7 @@ from coworld.data import DatasetWriter, open_dataset
 from coworld.training.checkpoint import CHECKPOINT_NAME, load_checkpoint, rng_state, save_checkpoint, set_rng_state
 from coworld.training.evaluate import evaluate
 from coworld.training.logger import Logger, Rate
+from coworld.training.progress import progress_bar
 from coworld.training.replay import Replay
 
 CHECKPOINT_KIND = "dreamerv2-online"
@@ -79,12 +79,15 @@ class OnlineTrainer:
         logger: Logger,
         checkpoint_extra: Callable[[], dict[str, Any]] | None = None,
         metric_prefix: str = "",
+        step_unit_prefix: str = "",
     ) -> None:
         self.agent, self.task, self.config = agent, task, config
         self.logdir = Path(logdir)
         self.writer, self.logger = writer, logger
         self.checkpoint_extra = checkpoint_extra
         self.prefix = metric_prefix
+        self.step_unit = f"{step_unit_prefix}env_step"
+        """What the step of this trainer's log records counts (``env_step``, ``source_env_step``)."""
         self.spec = envs.task_spec(task)
         self.replay = Replay(seed=config.seed)
         self.steps = writer.num_steps
@@ -167,8 +170,8 @@ class OnlineTrainer:
             for i in range(n):
                 self._record(i, self._obs[i], np.zeros(self.spec.action_size, np.float32), 0.0, True, False, False)
         self._skip_missed_updates()
-        bar = tqdm.tqdm(
-            total=max_steps, initial=min(self.steps, max_steps), unit="step", disable=not progress, dynamic_ncols=True
+        bar = progress_bar(
+            total=max_steps, initial=min(self.steps, max_steps), desc=self.task, unit="env steps", enabled=progress
         )
         reason = "max steps"
         if stop_return is not None and self.last_eval is not None and self.last_eval >= stop_return:
@@ -212,7 +215,7 @@ class OnlineTrainer:
                     metrics[f"{self.prefix}perf/updates_per_s"] = update_rate(self.updates)
                     metrics[f"{self.prefix}perf/steps_per_s"] = step_rate(self.steps)
                     bar.set_postfix(self._bar_info(metrics[f"{self.prefix}perf/updates_per_s"]))
-                    self.logger.log(metrics, self.steps)
+                    self.logger.log(metrics, self.steps, unit=self.step_unit)
                     metrics, last_log = {}, self.steps
                 if ended:
                     if self.steps >= cfg.prefill and self.steps - self.last_eval_step >= cfg.eval_every:
@@ -230,7 +233,7 @@ class OnlineTrainer:
         finally:
             bar.close()
         if metrics:  # what the last log_every window had not written yet
-            self.logger.log(metrics, self.steps)
+            self.logger.log(metrics, self.steps, unit=self.step_unit)
         if reason != "paused":
             self.save()
         return OnlineResult(self.steps, self.updates, self.writer.num_episodes, self.last_eval, reason)
@@ -335,4 +338,4 @@ class OnlineTrainer:
         self.last_eval, self.last_eval_step = result.mean, self.steps
         self.writer.update_metadata(last_eval_return=result.mean, last_eval_step=self.steps)
         metrics = result.metrics(self.prefix)
-        self.logger.log(metrics, self.steps)
+        self.logger.log(metrics, self.steps, unit=self.step_unit)
