@@ -1,17 +1,27 @@
-"""Fixtures shared across the test packages."""
+"""Fixtures shared across the test packages.
+
+The suite runs on one torch (OpenMP) thread, in this process and in every CLI process it starts: tiny networks
+gain little from a second thread, and two threads crawl when another job holds a core (benchmarks/RESULTS.md,
+"Threads"). Tests about threads set their own count.
+"""
 
 from __future__ import annotations
 
-import dataclasses
-from collections.abc import Iterator
-from pathlib import Path
+import os
 
-import numpy as np
-import pytest
-import torch
+os.environ["OMP_NUM_THREADS"] = "1"  # before torch starts its thread pool; inherited by subprocesses
+os.environ["MKL_NUM_THREADS"] = "1"
 
-from coworld import envs
-from coworld.data import DatasetWriter
+import dataclasses  # noqa: E402
+from collections.abc import Iterator  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+import torch  # noqa: E402
+
+from coworld import envs  # noqa: E402
+from coworld.data import DatasetWriter  # noqa: E402
 
 
 def write_toy_dataset(path: Path, task: str = "toy_reach", episodes: int = 4, seed: int = 0) -> Path:
@@ -47,6 +57,14 @@ def write_toy_dataset(path: Path, task: str = "toy_reach", episodes: int = 4, se
         writer.close(complete=True)
     env.close()
     return path
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _one_torch_thread_for_the_session() -> Iterator[None]:
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
 
 
 @pytest.fixture(scope="session")
