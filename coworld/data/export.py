@@ -61,25 +61,24 @@ def export_npz_episodes(
 ) -> Path:
     """Write every episode of a dataset as a dreamer-style npz file into the new folder ``out``; returns ``out``."""
     out = Path(out)
-    _check_destination(out, force, "folder")
-    _remove_stale_temporaries(out)
-    tmp = out.with_name(f".{out.name}.{os.getpid()}.tmp")
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir(parents=True)
-    stamp = datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%S")
-    try:
-        with open_dataset(resolve_dataset(path_or_name)) as data:
-            width = max(6, len(str(data.num_episodes - 1)))
-            bar = tqdm(range(data.num_episodes), unit="episode", desc="exporting", disable=not progress)
-            for i in bar:
+    with open_dataset(resolve_dataset(path_or_name)) as data:
+        _check_destination(out, force, "folder")
+        _remove_stale_temporaries(out)
+        tmp = out.with_name(f".{out.name}.{os.getpid()}.tmp")
+        shutil.rmtree(tmp, ignore_errors=True)
+        tmp.mkdir(parents=True)
+        stamp = datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%S")
+        width = max(6, len(str(data.num_episodes - 1)))
+        try:
+            for i in tqdm(range(data.num_episodes), unit="episode", desc="exporting", disable=not progress):
                 episode = step_episode(data, i)
                 buffer = io.BytesIO()
                 np.savez_compressed(buffer, **episode)
                 (tmp / f"{stamp}-{i:0{width}d}-{len(episode['reward'])}.npz").write_bytes(buffer.getvalue())
-        _replace(tmp, out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
+            _replace(tmp, out)
+        except BaseException:
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise
     return out
 
 
