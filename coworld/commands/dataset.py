@@ -124,7 +124,11 @@ def import_dataset(
     force: bool,
     compression: str,
 ) -> None:
-    """Convert a dataset of another format into format v1 (FORMAT vd4rl: a V-D4RL 64px or 84px folder at PATH)."""
+    """Convert a dataset of another format into format v1.
+
+    FORMAT vd4rl: PATH is a V-D4RL folder, its 64px layout (.npz episodes) or its 84px one (.hdf5 shards; needs
+    --resize 64).
+    """
     from coworld.data.vd4rl import import_vd4rl
 
     summary = import_vd4rl(
@@ -161,10 +165,13 @@ def export(
     author_email: str | None,
     code_permalink: str | None,
 ) -> None:
-    """Write the dataset at PATH (a file or a name such as walker_uphill-medium-replay) in another format.
+    """Export a dataset to Minari or to dreamer-style npz episodes.
 
-    minari: a Minari dataset in MINARI_DATASETS_PATH (default ~/.minari/datasets) that minari.load_dataset opens.
-    npz-episodes: one dreamer-style .npz per episode (V-D4RL's 64px layout) in the folder --out.
+    PATH is a dataset file, or a name such as walker_uphill-medium-replay (datasets/<task>-<quality>.h5).
+
+    \b
+    --to minari        a Minari dataset in MINARI_DATASETS_PATH (default ~/.minari/datasets)
+    --to npz-episodes  one .npz per episode (V-D4RL's 64px layout) in the new folder --out
     """
     from coworld.data.export import export_minari, export_npz_episodes
     from coworld.errors import ConfigError

@@ -117,7 +117,7 @@ def export_minari(
     import gymnasium as gym
     from minari.dataset.minari_dataset import parse_dataset_id
     from minari.dataset.minari_storage import MinariStorage
-    from minari.namespace import create_namespace, list_local_namespaces
+    from minari.namespace import create_namespace, list_local_namespaces, validate_namespace
     from minari.storage.datasets_root_dir import get_dataset_path
 
     source = resolve_dataset(path_or_name)
@@ -125,7 +125,8 @@ def export_minari(
         name = name or default_minari_name(data.task, data.quality)
         try:
             namespace, _, _ = parse_dataset_id(name)
-        except ValueError:
+            validate_namespace(namespace)
+        except (ValueError, TypeError):
             raise CoworldError(
                 f"bad Minari dataset name {name!r}: write it as namespace/name-v<version>, "
                 f"e.g. {default_minari_name(data.task, data.quality)}"

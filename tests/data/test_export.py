@@ -139,6 +139,8 @@ def test_minari_export_refuses_to_overwrite_without_force(source: Path, minari_r
     ("args", "message"),
     [
         (["--to", "minari", "--name", "no version"], "bad Minari dataset name 'no version'"),
+        (["--to", "minari", "--name", "coworld/-v0"], "bad Minari dataset name 'coworld/-v0'"),
+        (["--to", "minari", "--name", "/x-v0"], "bad Minari dataset name '/x-v0'"),
         (["--to", "minari", "--out", "x"], "not --out"),
         (["--to", "npz-episodes"], "--to npz-episodes writes the folder --out FOLDER"),
         (["--to", "parquet"], "Invalid value for '--to'"),
