@@ -110,8 +110,10 @@ def export_minari(
     holds Gymnasium spaces (``Box(0, 255, (64, 64, 3), uint8)`` frames, ``Box(-1, 1, (A,), float32)`` actions),
     ``ref_min_score`` / ``ref_max_score`` from our reference returns (so ``minari.get_normalized_score`` works),
     ``eval_env_spec`` = ``coworld/<task>-v0`` for a registered task, and everything of ours under ``coworld``
-    (task, quality, env config, collector, reference, versions, source file). Infos are padded to T+1 entries as
-    Minari records them (entry 0, the reset's, is zero; entry j is the info of the step taken by a_{j-1}).
+    (task, quality, env config, collector, reference, versions, source file). Each episode carries its return and
+    reward statistics (``rewards_sum``, ``rewards_mean``, ... as Minari's data collector records them). Infos are
+    padded to T+1 entries as Minari records them (entry 0, the reset's, is zero; entry j is the info of the step
+    taken by a_{j-1}).
     """
     minari = import_minari()
     import gymnasium as gym
@@ -150,7 +152,9 @@ def export_minari(
                 _minari_metadata(data, name, minari.__version__, author, author_email, code_permalink)
             )
             from minari.data_collector import EpisodeBuffer
+            from minari.data_collector.callbacks import EpisodeMetadataCallback
 
+            episode_stats, summarize = [], EpisodeMetadataCallback()
             for i in tqdm(range(data.num_episodes), unit="episode", desc="exporting", disable=not progress):
                 episode = episode_record(data, i)
                 infos = {
@@ -166,6 +170,8 @@ def export_minari(
                     infos=infos,
                 )
                 storage.update_episodes([buffer])
+                episode_stats.append(summarize({"rewards": episode.rewards}))
+            storage.update_episode_metadata(episode_stats)  # what Minari's DataCollector adds: rewards_sum, ...
             _replace(tmp, final)
         except BaseException:
             shutil.rmtree(tmp, ignore_errors=True)

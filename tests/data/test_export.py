@@ -108,6 +108,9 @@ def test_minari_export_loads_back_in_minari_and_matches_every_episode(
     assert ours["collector"] == {"algorithm": "dreamerv2", "preset": "tiny", "seed": 3, "steps": 27}
     assert ours["env_config"]["action_repeat"] == 2 and ours["source"] == str(source.resolve())
     returns = np.array([ep["rewards"].astype(np.float64).sum() for ep in episodes])
+    stats = list(dataset.storage.get_episode_metadata(range(len(episodes))))  # as Minari's DataCollector adds them
+    np.testing.assert_allclose([s["rewards_sum"] for s in stats], returns, rtol=1e-5)
+    np.testing.assert_allclose([s["rewards_max"] for s in stats], [ep["rewards"].max() for ep in episodes])
     with open_dataset(source) as data:
         np.testing.assert_allclose(100 * minari.get_normalized_score(dataset, returns), data.normalized_scores())
     with h5py.File(data_dir / "main_data.hdf5", "r") as f:
