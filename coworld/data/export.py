@@ -117,6 +117,8 @@ def export_minari(
     """
     minari = import_minari()
     import gymnasium as gym
+    from minari.data_collector import EpisodeBuffer
+    from minari.data_collector.callbacks import EpisodeMetadataCallback
     from minari.dataset.minari_dataset import parse_dataset_id
     from minari.dataset.minari_storage import MinariStorage
     from minari.namespace import create_namespace, list_local_namespaces, validate_namespace
@@ -151,9 +153,6 @@ def export_minari(
             storage.update_metadata(
                 _minari_metadata(data, name, minari.__version__, author, author_email, code_permalink)
             )
-            from minari.data_collector import EpisodeBuffer
-            from minari.data_collector.callbacks import EpisodeMetadataCallback
-
             episode_stats, summarize = [], EpisodeMetadataCallback()
             for i in tqdm(range(data.num_episodes), unit="episode", desc="exporting", disable=not progress):
                 episode = episode_record(data, i)
