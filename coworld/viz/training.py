@@ -1,0 +1,80 @@
+"""What the training loops call at every evaluation: an open-loop prediction strip into TensorBoard.
+
+The strip is one image (``Logger.log_image``, TensorBoard's ``add_image``), not a video: an image needs nothing
+beyond TensorBoard itself (``add_video`` needs moviepy), and it shows every step of every sequence at once, which
+is what one compares from one evaluation to the next. The same sequences are shown each time (evenly spaced
+episodes, windows drawn with a fixed seed), so the strips of one run can be compared directly. Beside the image,
+the mean error over the imagined steps is logged as a scalar ``<tag>/mse`` (``<tag>/mse_<model>`` for CoWorld).
+Nothing here draws from the global random generators, so a run's batches are the same with or without it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from typing import Any
+
+import numpy as np
+
+from coworld.viz.predictions import CONTEXT, predict, prediction_strip
+from coworld.viz.runs import episode_windows, evenly_spaced
+
+SEQUENCES = 4
+"""Sequences in a training strip."""
+LENGTH = CONTEXT + 15
+"""Steps per sequence in a training strip: the observed context, then 15 imagined (the imagination horizon)."""
+
+Episodes = Sequence[Mapping[str, np.ndarray]]
+SequenceSource = Callable[[int], Iterator[Mapping[str, np.ndarray]]] | Episodes | Any
+"""Where the sequences come from: a sampler factory ``seed -> iterator of batches (B, L, ...)`` (the offline
+trainers' ``make_sampler``), a list of episodes in the step convention (a replay's), or an open
+:class:`~coworld.data.reader.Dataset`."""
+
+
+def world_models_of(agent: Any) -> dict[str, Any]:
+    """The world models an agent trains, by name: a DreamerV2 -> ``{"model"}``, a CoWorld -> ``{"target",
+    "source"}``, CoWorld's source learner (what its online trainer drives) -> ``{"source"}``; others -> ``{}``."""
+    if hasattr(agent, "world_model"):
+        return {"model": agent.world_model}
+    if hasattr(agent, "target") and hasattr(agent, "source"):
+        return {"target": agent.target.world_model, "source": agent.source.world_model}
+    if hasattr(agent, "coworld"):
+        return {"source": agent.coworld.source.world_model}
+    return {}
+
+
+def strip_sequences(source: SequenceSource, seed: int = 0) -> dict[str, np.ndarray] | None:
+    """``SEQUENCES`` windows of up to ``LENGTH`` steps from ``source``; None when too short to imagine anything."""
+    if callable(source):
+        batch = {key: np.asarray(value)[:SEQUENCES, :LENGTH] for key, value in next(iter(source(seed))).items()}
+    else:
+        if hasattr(source, "episode"):
+            total = source.num_episodes
+            pick = [source.episode(i) for i in evenly_spaced(total, SEQUENCES)]
+        else:
+            pick = [source[i] for i in evenly_spaced(len(source), SEQUENCES)]
+        if not pick:
+            return None
+        rng = np.random.default_rng(seed)
+        starts = [int(rng.integers(0, max(1, len(ep["reward"]) - LENGTH + 1))) for ep in pick]
+        batch = episode_windows(pick, LENGTH, starts)
+    return batch if batch["image"].shape[1] > CONTEXT else None
+
+
+def log_open_loop(logger: Any, agent: Any, source: SequenceSource, step: int, *, tag: str) -> dict[str, float]:
+    """Log the open-loop strip of ``agent``'s world models on sequences of ``source`` at ``step``.
+
+    Does nothing (returns ``{}``) for agents without a world model and for sequences too short to imagine.
+    Returns the logged scalars.
+    """
+    models = world_models_of(agent)
+    if not models:
+        return {}
+    batch = strip_sequences(source)
+    if batch is None:
+        return {}
+    pred = predict(models, batch, CONTEXT)
+    logger.log_image(tag, prediction_strip(pred, title=f"{tag} at step {step}"), step)
+    imagined = pred.imagined_error()
+    metrics = {f"{tag}/mse" if len(imagined) == 1 else f"{tag}/mse_{name}": value for name, value in imagined.items()}
+    logger.log(metrics, step)
+    return metrics
