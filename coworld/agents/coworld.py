@@ -45,6 +45,7 @@ from coworld.training.checkpoint import CHECKPOINT_NAME, load_checkpoint, rng_st
 from coworld.training.evaluate import evaluate
 from coworld.training.logger import Logger
 from coworld.training.online import OnlineTrainer
+from coworld.viz.training import log_open_loop
 
 CHECKPOINT_KIND = "coworld"
 UNBOUNDED = 2**62  # source phases end by pausing after K2 updates, never by a step limit
@@ -271,6 +272,7 @@ def train_coworld(job: Any, *, device: torch.device, resumed: bool, progress: bo
                         progress_state["last_eval"] = result.mean
                         metrics = result.metrics()
                         logger.log(metrics, agent.target.updates)
+                        log_open_loop(logger, agent, dataset, agent.target.updates, tag=f"openl/{job.target}")
                         bar.set_postfix(eval_return=f"{result.mean:.1f}")
                     progress_state.update(iteration=iteration + 1, phase="target")
                     save()

@@ -29,6 +29,7 @@ from coworld.training.checkpoint import CHECKPOINT_NAME, load_checkpoint, rng_st
 from coworld.training.evaluate import evaluate
 from coworld.training.logger import Logger, Rate
 from coworld.training.replay import Replay
+from coworld.viz.training import log_open_loop
 
 CHECKPOINT_KIND = "dreamerv2-online"
 
@@ -297,3 +298,4 @@ class OnlineTrainer:
         self.writer.update_metadata(last_eval_return=result.mean, last_eval_step=self.steps)
         metrics = result.metrics(self.prefix)
         self.logger.log(metrics, self.steps)
+        log_open_loop(self.logger, self.agent, self.replay.episodes, self.steps, tag=f"{self.prefix}openl/{self.task}")
