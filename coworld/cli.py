@@ -24,6 +24,7 @@ COMMANDS = {
     "dataset": "coworld.commands.dataset:dataset",
     "train": "coworld.commands.train:train",
     "eval": "coworld.commands.evaluate:evaluate",
+    "viz": "coworld.commands.viz:viz",
 }
 
 
