@@ -27,7 +27,7 @@ from coworld import envs
 from coworld.errors import CoworldError
 from coworld.viz.media import require_extra
 from coworld.viz.predictions import batch_tensors
-from coworld.viz.runs import episode_windows
+from coworld.viz.runs import EpisodeSource, count_episodes, episode_windows, get_episodes
 
 __all__ = [
     "LatentGroup",
@@ -70,19 +70,16 @@ def posterior_latents(world_model: Any, batch: Mapping[str, np.ndarray], chunk: 
     return torch.cat(out).cpu().numpy()
 
 
-def sample_windows(source: Any, frames: int, length: int, seed: int = 0) -> dict[str, np.ndarray]:
+def sample_windows(source: EpisodeSource, frames: int, length: int, seed: int = 0) -> dict[str, np.ndarray]:
     """Windows of ``length`` steps holding at least ``frames`` steps in all, from evenly spaced episodes.
 
     ``source``: an open :class:`~coworld.data.reader.Dataset` or a list of episodes (step convention). Window
     starts are drawn with ``seed``; ``length`` is cut to the shortest episode used.
     """
-    total = source.num_episodes if hasattr(source, "episode") else len(source)
+    total = count_episodes(source)
     count = -(-frames // length)
-    which = np.round(np.linspace(0, total - 1, count)).astype(int) if total else np.zeros(0, int)
-    cache: dict[int, Mapping[str, np.ndarray]] = {}
-    for i in sorted(set(which.tolist())):
-        cache[i] = source.episode(i) if hasattr(source, "episode") else source[i]
-    episodes = [cache[int(i)] for i in which]
+    which = np.round(np.linspace(0, total - 1, count)).astype(int).tolist() if total else []
+    episodes = get_episodes(source, which)
     if not episodes:
         raise CoworldError("no episodes to take frames from")
     rng = np.random.default_rng(seed)

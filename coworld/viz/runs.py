@@ -9,7 +9,7 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -18,6 +18,31 @@ from coworld.config import Config
 from coworld.errors import CheckpointError, CoworldError
 
 WORLD_MODEL_ALGOS = ("coworld", "dreamerv2")
+_KEYS = ("image", "action", "reward", "is_first", "is_last", "is_terminal")
+
+
+@runtime_checkable
+class EpisodeStore(Protocol):
+    """What an open :class:`~coworld.data.reader.Dataset` offers: its episode count and one episode at a time."""
+
+    @property
+    def num_episodes(self) -> int: ...
+
+    def episode(self, i: int) -> dict[str, np.ndarray]: ...
+
+
+EpisodeSource = EpisodeStore | Sequence[Mapping[str, np.ndarray]]
+"""Episodes in the step convention: an open dataset, or a list of episodes (a replay's, fresh rollouts)."""
+
+
+def count_episodes(source: EpisodeSource) -> int:
+    return source.num_episodes if isinstance(source, EpisodeStore) else len(source)
+
+
+def get_episodes(source: EpisodeSource, indices: Sequence[int]) -> list[Mapping[str, np.ndarray]]:
+    """Episodes ``indices`` of ``source`` (an index repeated is read once)."""
+    read = {i: source.episode(i) if isinstance(source, EpisodeStore) else source[i] for i in set(indices)}
+    return [read[i] for i in indices]
 
 
 @dataclass
@@ -144,9 +169,6 @@ def episode_windows(
         start = int(np.clip(start, 0, len(episode["reward"]) - length))
         windows.append({key: np.asarray(episode[key][start : start + length]) for key in _KEYS})
     return {key: np.stack([w[key] for w in windows]) for key in _KEYS}
-
-
-_KEYS = ("image", "action", "reward", "is_first", "is_last", "is_terminal")
 
 
 def rollout_episodes(agent: Any, task: str, episodes: int, seed: int = 0, mode: str = "eval") -> list[dict]:

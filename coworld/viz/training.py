@@ -10,24 +10,21 @@ Nothing here draws from the global random generators, so a run's batches are the
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping
 from typing import Any
 
 import numpy as np
 
 from coworld.viz.predictions import CONTEXT, predict, prediction_strip
-from coworld.viz.runs import episode_windows, evenly_spaced
+from coworld.viz.runs import EpisodeSource, count_episodes, episode_windows, evenly_spaced, get_episodes
 
 SEQUENCES = 4
 """Sequences in a training strip."""
 LENGTH = CONTEXT + 15
 """Steps per sequence in a training strip: the observed context, then 15 imagined (the imagination horizon)."""
 
-Episodes = Sequence[Mapping[str, np.ndarray]]
-SequenceSource = Callable[[int], Iterator[Mapping[str, np.ndarray]]] | Episodes | Any
-"""Where the sequences come from: a sampler factory ``seed -> iterator of batches (B, L, ...)`` (the offline
-trainers' ``make_sampler``), a list of episodes in the step convention (a replay's), or an open
-:class:`~coworld.data.reader.Dataset`."""
+SamplerFactory = Callable[[int], Iterator[Mapping[str, np.ndarray]]]
+"""``seed -> iterator of batches (B, L, ...)``: the offline trainers' ``make_sampler``."""
 
 
 def world_models_of(agent: Any) -> dict[str, Any]:
@@ -42,16 +39,12 @@ def world_models_of(agent: Any) -> dict[str, Any]:
     return {}
 
 
-def strip_sequences(source: SequenceSource, seed: int = 0) -> dict[str, np.ndarray] | None:
+def strip_sequences(source: SamplerFactory | EpisodeSource, seed: int = 0) -> dict[str, np.ndarray] | None:
     """``SEQUENCES`` windows of up to ``LENGTH`` steps from ``source``; None when too short to imagine anything."""
     if callable(source):
         batch = {key: np.asarray(value)[:SEQUENCES, :LENGTH] for key, value in next(iter(source(seed))).items()}
     else:
-        if hasattr(source, "episode"):
-            total = source.num_episodes
-            pick = [source.episode(i) for i in evenly_spaced(total, SEQUENCES)]
-        else:
-            pick = [source[i] for i in evenly_spaced(len(source), SEQUENCES)]
+        pick = get_episodes(source, evenly_spaced(count_episodes(source), SEQUENCES))
         if not pick:
             return None
         rng = np.random.default_rng(seed)
@@ -60,7 +53,9 @@ def strip_sequences(source: SequenceSource, seed: int = 0) -> dict[str, np.ndarr
     return batch if batch["image"].shape[1] > CONTEXT else None
 
 
-def log_open_loop(logger: Any, agent: Any, source: SequenceSource, step: int, *, tag: str) -> dict[str, float]:
+def log_open_loop(
+    logger: Any, agent: Any, source: SamplerFactory | EpisodeSource, step: int, *, tag: str
+) -> dict[str, float]:
     """Log the open-loop strip of ``agent``'s world models on sequences of ``source`` at ``step``.
 
     Does nothing (returns ``{}``) for agents without a world model and for sequences too short to imagine.
