@@ -25,6 +25,7 @@ COMMANDS = {
     "train": "coworld.commands.train:train",
     "eval": "coworld.commands.evaluate:evaluate",
     "config": "coworld.commands.config:config",
+    "viz": "coworld.commands.viz:viz",
 }
 
 

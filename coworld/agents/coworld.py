@@ -49,6 +49,7 @@ from coworld.training.evaluate import evaluate
 from coworld.training.logger import Logger, Rate
 from coworld.training.online import OnlineTrainer
 from coworld.training.progress import progress_bar
+from coworld.viz.training import log_open_loop
 
 CHECKPOINT_KIND = "coworld"
 UNBOUNDED = 2**62  # source phases end by pausing after K2 updates, never by a step limit
@@ -171,7 +172,8 @@ class _SourceLearner:
         return self.coworld.source.value(state)
 
     def train(self, batch: Mapping[str, np.ndarray]) -> dict[str, float]:
-        return self.coworld.train_source(batch)
+        # the online trainer adds its own "source/" prefix (to these and to its eval/ and perf/ metrics)
+        return {key.removeprefix("source/"): value for key, value in self.coworld.train_source(batch).items()}
 
     def state_dict(self) -> dict[str, Any]:
         return self.coworld.source.state_dict()
@@ -216,6 +218,7 @@ def train_coworld(job: Any, *, device: torch.device, resumed: bool, progress: bo
             logdir=logdir / "source",
             writer=writer,
             logger=logger,
+            metric_prefix="source/",
             step_unit_prefix="source_",
         )
         # restore: the combined checkpoint once past pretraining, else the pretraining checkpoint
@@ -297,6 +300,14 @@ def train_coworld(job: Any, *, device: torch.device, resumed: bool, progress: bo
                         )
                         progress_state["last_eval"] = result.mean
                         logger.log(result.metrics(), agent.target.updates, unit="target_update")
+                        log_open_loop(
+                            logger,
+                            agent,
+                            dataset,
+                            agent.target.updates,
+                            tag=f"openl/{job.target}",
+                            unit="target_update",
+                        )
                     progress_state.update(iteration=iteration + 1, phase="target")
                     save()
                     _show(bar, {**progress_state, "iteration": iteration}, cfg.iterations)

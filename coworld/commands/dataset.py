@@ -29,6 +29,7 @@ def info(path: Path, as_json: bool) -> None:
         return
     for key, value in _info_lines(summary):
         click.echo(f"{key:<12}{value}")
+    click.echo(f"{'preview':<12}coworld viz dataset {path} --out preview.png (frames, returns; .mp4 for episodes)")
 
 
 def _info_lines(s: dict[str, Any]) -> list[tuple[str, str]]:

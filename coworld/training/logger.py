@@ -1,7 +1,8 @@
 """One logger with pluggable outputs: console, JSON lines and TensorBoard.
 
 Keys are namespaced (``wm/``, ``actor/``, ``critic/``, ``coworld/``, ``eval/``, ...). Every call to
-:meth:`Logger.log` writes one record at one step to every output.
+:meth:`Logger.log` writes one record at one step to every output; :meth:`Logger.log_image` writes a picture to
+TensorBoard (e.g. the open-loop prediction strips, ``openl/<task>``).
 """
 
 from __future__ import annotations
@@ -66,6 +67,12 @@ class Logger:
         if self._console and shown:
             text = "  ".join(f"{k} {v:.4g}" for k, v in sorted(shown.items()))
             tqdm.tqdm.write(f"[{unit} {step:,}] {text}", file=sys.stderr)
+
+    def log_image(self, tag: str, image: Any, step: int) -> None:
+        """Record a uint8 ``(H, W, 3)`` picture at ``step`` (TensorBoard only; the other outputs take scalars)."""
+        if self._tb is not None:
+            self._tb.add_image(tag, image, step, dataformats="HWC")
+            self._tb.flush()
 
     def close(self) -> None:
         if self._jsonl is not None:

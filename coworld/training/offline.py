@@ -20,6 +20,7 @@ from coworld.training.checkpoint import CHECKPOINT_NAME, load_checkpoint, rng_st
 from coworld.training.evaluate import evaluate
 from coworld.training.logger import Logger, Rate
 from coworld.training.progress import progress_bar
+from coworld.viz.training import log_open_loop
 
 SamplerFactory = Callable[[int], Iterator[dict[str, np.ndarray]]]
 
@@ -144,3 +145,4 @@ class OfflineTrainer:
         self.last_eval = result.mean
         metrics = result.metrics()
         self.logger.log(metrics, self.updates, unit="update")
+        log_open_loop(self.logger, self.agent, self.make_sampler, self.updates, tag=f"openl/{self.task}", unit="update")

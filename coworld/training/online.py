@@ -36,6 +36,7 @@ from coworld.training.evaluate import evaluate
 from coworld.training.logger import Logger, Rate
 from coworld.training.progress import progress_bar
 from coworld.training.replay import Replay
+from coworld.viz.training import log_open_loop
 
 CHECKPOINT_KIND = "dreamerv2-online"
 
@@ -339,3 +340,11 @@ class OnlineTrainer:
         self.writer.update_metadata(last_eval_return=result.mean, last_eval_step=self.steps)
         metrics = result.metrics(self.prefix)
         self.logger.log(metrics, self.steps, unit=self.step_unit)
+        log_open_loop(
+            self.logger,
+            self.agent,
+            self.replay.episodes,
+            self.steps,
+            tag=f"{self.prefix}openl/{self.task}",
+            unit=self.step_unit,
+        )
