@@ -26,6 +26,8 @@ COMMANDS = {
     "dataset": "coworld.commands.dataset:dataset",
     "train": "coworld.commands.train:train",
     "eval": "coworld.commands.evaluate:evaluate",
+    "config": "coworld.commands.config:config",
+    "viz": "coworld.commands.viz:viz",
 }
 
 

@@ -3,7 +3,9 @@
 One tree of frozen dataclasses holds every default. Named presets (``tiny`` for CPU, ``paper`` for the
 paper's Table 3 on a GPU) are dotted overrides layered on top, and ``--set section.key=value`` overrides
 from the command line are layered on the preset. An unknown key raises :class:`~coworld.errors.ConfigError`;
-a value is cast to the type of its default; nothing mutates a config once built. The resolved config is
+a value is cast to the type of its default and checked against the range written next to its field
+(``Annotated[float, Range(0, 1)]``), when the config is built and before anything is written; nothing mutates a
+config once built. The resolved config is
 saved as JSON next to every run and inside every dataset.
 """
 
@@ -11,56 +13,113 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
+import re
 import types
 import typing
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Annotated, Any
 
 from coworld.errors import ConfigError
+
+
+@dataclass(frozen=True)
+class Range:
+    """The valid values of a number: finite, ``low <= x <= high`` (strict where ``*_open``); None is unbounded."""
+
+    low: float | None = None
+    high: float | None = None
+    low_open: bool = False
+    high_open: bool = False
+
+    def contains(self, value: float) -> bool:
+        if isinstance(value, float) and not math.isfinite(value):
+            return False
+        if self.low is not None and (value <= self.low if self.low_open else value < self.low):
+            return False
+        return not (self.high is not None and (value >= self.high if self.high_open else value > self.high))
+
+    def __str__(self) -> str:
+        low, high = _number(self.low), _number(self.high)
+        if self.low is not None and self.high is not None:
+            return f"in {'(' if self.low_open else '['}{low}, {high}{')' if self.high_open else ']'}"
+        if self.low is not None:
+            return f"{'>' if self.low_open else '>='} {low}"
+        return f"{'<' if self.high_open else '<='} {high}"
+
+
+@dataclass(frozen=True)
+class OneOf:
+    """The valid values of a string: one of ``choices``, or a full match of ``pattern``."""
+
+    choices: tuple[str, ...]
+    pattern: str | None = None
+    pattern_text: str = ""
+    """How ``pattern`` reads in an error message, e.g. ``cuda:N``."""
+
+    def contains(self, value: str) -> bool:
+        return value in self.choices or (self.pattern is not None and re.fullmatch(self.pattern, value) is not None)
+
+    def __str__(self) -> str:
+        return "one of " + ", ".join(self.choices) + (f" or {self.pattern_text}" if self.pattern else "")
+
+
+def _number(value: float | None) -> str:
+    if value is None:
+        return ""
+    return str(int(value)) if float(value).is_integer() else f"{value:g}"
+
+
+POSITIVE = Range(0, low_open=True)
+NON_NEGATIVE = Range(0)
+AT_LEAST_1 = Range(1)
+UNIT = Range(0, 1)
+"""Shorthands for the ranges most fields use."""
 
 
 @dataclass(frozen=True)
 class WorldModelConfig:
     """DreamerV2 world model: encoder, RSSM, decoder, reward and discount heads (paper Sec. 3.2.1)."""
 
-    cnn_depth: int = 48
+    cnn_depth: Annotated[int, AT_LEAST_1] = 48
     """Channels of the first conv layer; layers double it (48-96-192-384)."""
-    deter: int = 600
+    deter: Annotated[int, AT_LEAST_1] = 600
     """Deterministic GRU state size (Table 3: RSSM 600 units)."""
-    hidden: int = 600
+    hidden: Annotated[int, AT_LEAST_1] = 600
     """Hidden units of the RSSM's input and posterior/prior MLPs."""
-    stoch: int = 32
+    stoch: Annotated[int, AT_LEAST_1] = 32
     """Number of categorical latent variables (Table 3: 32 x 32 discrete latents)."""
-    classes: int = 32
+    classes: Annotated[int, Range(2)] = 32
     """Classes per categorical latent variable."""
-    mlp_units: int = 400
+    mlp_units: Annotated[int, AT_LEAST_1] = 400
     """Units per layer of the reward and discount heads."""
-    mlp_layers: int = 4
+    mlp_layers: Annotated[int, NON_NEGATIVE] = 4
     """Layers of the reward and discount heads."""
-    kl_scale: float = 1.0
+    kl_scale: Annotated[float, NON_NEGATIVE] = 1.0
     """beta1 in Eq. 3: weight of KL[posterior || prior]."""
-    kl_balance: float = 0.8
+    kl_balance: Annotated[float, UNIT] = 0.8
     """Share of the KL gradient that trains the prior (the rest trains the posterior)."""
-    free_nats: float = 1.0
+    free_nats: Annotated[float, NON_NEGATIVE] = 1.0
     """KL below this many nats (averaged over the batch) gives no gradient."""
-    image_scale: float = 1.0
+    image_scale: Annotated[float, NON_NEGATIVE] = 1.0
     """Weight of the image log-likelihood."""
-    reward_scale: float = 1.0
+    reward_scale: Annotated[float, NON_NEGATIVE] = 1.0
     """Weight of the reward log-likelihood."""
-    discount_scale: float = 1.0
+    discount_scale: Annotated[float, NON_NEGATIVE] = 1.0
     """Weight of the discount (continuation) log-likelihood."""
     pred_discount: bool = True
     """Learn a discount head from terminal flags (else imagination uses the constant discount)."""
-    unimix: float = 0.0
+    unimix: Annotated[float, Range(0, 1, high_open=True)] = 0.0
     """Uniform mixture on the categorical latents (0 = DreamerV2; 0.01 = DreamerV3's)."""
-    lr: float = 2e-4
+    lr: Annotated[float, POSITIVE] = 2e-4
     """World-model learning rate (Table 3)."""
-    eps: float = 1e-5
+    eps: Annotated[float, POSITIVE] = 1e-5
     """Adam epsilon."""
-    weight_decay: float = 1e-6
-    """AdamW weight decay."""
-    grad_clip: float = 100.0
+    weight_decay: Annotated[float, Range(0, 1, high_open=True)] = 1e-6
+    """DreamerV2's weight decay: each update first multiplies every weight by ``1 - weight_decay``, whatever the
+    learning rate (DreamerV2: 1e-6; done as AdamW with ``weight_decay / lr``, which is the same step)."""
+    grad_clip: Annotated[float, POSITIVE] = 100.0
     """Global gradient-norm clip."""
 
 
@@ -68,37 +127,37 @@ class WorldModelConfig:
 class ActorCriticConfig:
     """Actor and critic trained in imagination with lambda-returns."""
 
-    units: int = 400
+    units: Annotated[int, AT_LEAST_1] = 400
     """Units per MLP layer of actor and critic."""
-    layers: int = 4
+    layers: Annotated[int, NON_NEGATIVE] = 4
     """MLP layers of actor and critic."""
-    horizon: int = 15
+    horizon: Annotated[int, Range(2)] = 15
     """Imagination horizon H (Table 3)."""
-    discount: float = 0.995
+    discount: Annotated[float, Range(0, 1, low_open=True)] = 0.995
     """gamma (Table 3)."""
-    lambda_: float = 0.95
+    lambda_: Annotated[float, UNIT] = 0.95
     """lambda of the lambda-return (Table 3)."""
-    actor_lr: float = 4e-5
+    actor_lr: Annotated[float, POSITIVE] = 4e-5
     """Actor learning rate (Table 3)."""
-    critic_lr: float = 1e-4
+    critic_lr: Annotated[float, POSITIVE] = 1e-4
     """Critic learning rate (Table 3)."""
-    actor_entropy: float = 1e-4
+    actor_entropy: Annotated[float, NON_NEGATIVE] = 1e-4
     """Entropy regularisation weight of the actor."""
-    actor_grad: str = "dynamics"
+    actor_grad: Annotated[str, OneOf(("dynamics", "reinforce"))] = "dynamics"
     """Actor gradient: 'dynamics' (backprop through the model, DMC default) or 'reinforce'."""
-    actor_min_std: float = 0.1
+    actor_min_std: Annotated[float, NON_NEGATIVE] = 0.1
     """Lower bound of the actor's standard deviation."""
-    actor_dist: str = "trunc_normal"
+    actor_dist: Annotated[str, OneOf(("trunc_normal", "tanh_normal"))] = "trunc_normal"
     """Actor distribution over [-1, 1] actions: 'trunc_normal' (DreamerV2's DMC choice) or 'tanh_normal'."""
-    slow_target_every: int = 100
+    slow_target_every: Annotated[int, AT_LEAST_1] = 100
     """Updates between copies of the critic into its slow target."""
-    slow_target_fraction: float = 1.0
+    slow_target_fraction: Annotated[float, Range(0, 1, low_open=True)] = 1.0
     """Fraction of the critic mixed into the slow target at each copy."""
-    eps: float = 1e-5
+    eps: Annotated[float, POSITIVE] = 1e-5
     """Adam epsilon."""
-    weight_decay: float = 1e-6
-    """AdamW weight decay of actor and critic (DreamerV2's wd)."""
-    grad_clip: float = 100.0
+    weight_decay: Annotated[float, Range(0, 1, high_open=True)] = 1e-6
+    """Weight decay of actor and critic, DreamerV2's kind (see ``world_model.weight_decay``)."""
+    grad_clip: Annotated[float, POSITIVE] = 100.0
     """Global gradient-norm clip."""
 
 
@@ -106,27 +165,29 @@ class ActorCriticConfig:
 class TrainConfig:
     """Batches, schedule and bookkeeping of online (and offline) DreamerV2 training."""
 
-    batch_size: int = 50
+    batch_size: Annotated[int, AT_LEAST_1] = 50
     """Sequences per batch (Table 3: 50)."""
-    seq_len: int = 50
+    seq_len: Annotated[int, AT_LEAST_1] = 50
     """Steps per sequence (Table 3: 50)."""
-    prefill: int = 1000
+    prefill: Annotated[int, NON_NEGATIVE] = 1000
     """Random-policy environment steps before the first update."""
-    train_every: int = 5
+    pretrain_updates: Annotated[int, NON_NEGATIVE] = 100
+    """Extra updates made at once right after the prefill (DreamerV2's ``pretrain``: 100 in its DMC config)."""
+    train_every: Annotated[int, AT_LEAST_1] = 5
     """Environment steps per gradient update (the train ratio)."""
-    steps: int = 1_000_000
+    steps: Annotated[int, AT_LEAST_1] = 1_000_000
     """Environment steps (after action repeat) of an online run."""
-    eval_every: int = 10_000
+    eval_every: Annotated[int, AT_LEAST_1] = 10_000
     """Environment steps between evaluations."""
-    eval_episodes: int = 5
+    eval_episodes: Annotated[int, AT_LEAST_1] = 5
     """Episodes per evaluation."""
-    log_every: int = 1000
+    log_every: Annotated[int, AT_LEAST_1] = 1000
     """Environment steps between metric logs."""
-    checkpoint_every: int = 10_000
+    checkpoint_every: Annotated[int, AT_LEAST_1] = 10_000
     """Environment steps between checkpoints."""
-    envs: int = 1
+    envs: Annotated[int, Range(1, 256)] = 1
     """Parallel training environments (worker processes when > 1)."""
-    expl_noise: float = 0.0
+    expl_noise: Annotated[float, NON_NEGATIVE] = 0.0
     """Extra Gaussian noise on training actions."""
 
 
@@ -134,32 +195,36 @@ class TrainConfig:
 class CoWorldConfig:
     """CoWorld's schedule (Alg. 1) and its three domain-collaborative terms (Eqs. 3-6)."""
 
-    pretrain_steps: int = 100_000
-    """Online pretraining of the source agent, in source environment steps."""
-    iterations: int = 20
-    """Iterations of {K1 target updates; K2 source updates}."""
-    target_updates: int = 20_000
-    """K1: target-agent updates per iteration (offline, on dataset batches)."""
-    source_updates: int = 20_000
-    """K2: source-agent updates per iteration (with source environment interaction)."""
+    pretrain_steps: Annotated[int, NON_NEGATIVE] = 100_000
+    """Online pretraining of the source agent, in source environment steps (the paper gives no number)."""
+    iterations: Annotated[int, AT_LEAST_1] = 8
+    """Iterations of {K1 target updates; K2 source updates}. The paper trains "until converged" and reports
+    600K steps in under 4 days; read as updates of both agents, 8 x (5e4 + 2e4) = 560K is the nearest below."""
+    target_updates: Annotated[int, AT_LEAST_1] = 50_000
+    """K1 of Alg. 1: target-agent updates per iteration, offline on dataset batches. Table 3 gives 2e4 and 5e4
+    with its row names swapped against Alg. 1's symbols; we follow the names ("target domain update steps":
+    5e4), so the costly online phase is the shorter one (README, "CoWorld, term by term")."""
+    source_updates: Annotated[int, AT_LEAST_1] = 20_000
+    """K2 of Alg. 1: source-agent updates per iteration, with source environment steps at the train ratio
+    (Table 3's "source domain update steps": 2e4)."""
     align: bool = True
     """Eq. 3: align the target encoder to the source encoder on target frames."""
-    beta2: float = 1.5
+    beta2: Annotated[float, NON_NEGATIVE] = 1.5
     """Weight of the alignment KL (Table 3)."""
-    align_on: str = "latent"
+    align_on: Annotated[str, OneOf(("latent", "embedding"))] = "latent"
     """What is aligned: 'latent' (the posterior categorical, paper text) or 'embedding' (release's conv
     embedding through softmax)."""
     reward_relabel: bool = True
     """Eqs. 4-5: train the source reward head on target sequences with relabelled rewards."""
-    k: float = 0.2
+    k: Annotated[float, UNIT] = 0.2
     """Mixing weight of Eq. 5: r = k * r_S_pred + (1 - k) * r_T (Table 3)."""
     value_reg: bool = True
     """Eq. 6: max-min value regularisation of the target critic by the source critic."""
-    alpha: float = 0.2
+    alpha: Annotated[float, NON_NEGATIVE] = 0.2
     """Weight of the value regulariser (Table 3)."""
-    zeta: float = 1.0
+    zeta: Annotated[float, POSITIVE] = 1.0
     """Rescales target values against source values in Eq. 6."""
-    eval_every: int = 1
+    eval_every: Annotated[int, AT_LEAST_1] = 1
     """Iterations between evaluations of the target agent in the target environment."""
 
 
@@ -171,55 +236,55 @@ class CurlConfig:
     CQL's Gym-MuJoCo weight; the ``tiny`` preset shrinks the networks and batch for CPU tests.
     """
 
-    frame_stack: int = 3
+    frame_stack: Annotated[int, AT_LEAST_1] = 3
     """Stacked frames per observation (CURL: 3)."""
-    crop: int = 64
+    crop: Annotated[int, AT_LEAST_1] = 64
     """Side of the random crop fed to the encoder; 64 on 64 x 64 frames padded by pad = a random shift."""
-    pad: int = 4
+    pad: Annotated[int, NON_NEGATIVE] = 4
     """Replicate padding before the random crop (CURL crops 84 from a 100 render; our frames are 64)."""
-    feature_dim: int = 50
+    feature_dim: Annotated[int, AT_LEAST_1] = 50
     """Encoder output size (CURL: 50)."""
-    num_filters: int = 32
+    num_filters: Annotated[int, AT_LEAST_1] = 32
     """Conv channels per layer (CURL: 32)."""
-    num_layers: int = 4
+    num_layers: Annotated[int, AT_LEAST_1] = 4
     """Conv layers of the encoder (CURL: 4, first with stride 2)."""
-    hidden: int = 1024
+    hidden: Annotated[int, AT_LEAST_1] = 1024
     """Units of the actor and critic MLPs (CURL: 1024)."""
-    batch_size: int = 512
+    batch_size: Annotated[int, AT_LEAST_1] = 512
     """Transitions per batch (CURL's table: 512 for cheetah, 128 for the other DMC tasks)."""
-    updates: int = 500_000
+    updates: Annotated[int, AT_LEAST_1] = 500_000
     """Gradient updates of an offline run."""
-    discount: float = 0.99
+    discount: Annotated[float, Range(0, 1, low_open=True)] = 0.99
     """gamma."""
-    actor_lr: float = 1e-3
+    actor_lr: Annotated[float, POSITIVE] = 1e-3
     """Actor learning rate (CURL: 1e-3; 2e-4 for cheetah run)."""
-    critic_lr: float = 1e-3
+    critic_lr: Annotated[float, POSITIVE] = 1e-3
     """Critic (and encoder) learning rate (CURL: 1e-3; 2e-4 for cheetah run)."""
-    encoder_lr: float = 1e-3
+    encoder_lr: Annotated[float, POSITIVE] = 1e-3
     """Contrastive (CURL) learning rate of the encoder and W (CURL: 1e-3; 2e-4 for cheetah run)."""
-    alpha_lr: float = 1e-4
+    alpha_lr: Annotated[float, POSITIVE] = 1e-4
     """Temperature learning rate (CURL: 1e-4, Adam betas 0.5, 0.999)."""
-    init_temperature: float = 0.1
+    init_temperature: Annotated[float, POSITIVE] = 0.1
     """Initial SAC temperature (CURL: 0.1); the target entropy is -|A|."""
-    critic_tau: float = 0.01
+    critic_tau: Annotated[float, Range(0, 1, low_open=True)] = 0.01
     """Polyak rate of the target Q-heads (CURL: 0.01)."""
-    encoder_tau: float = 0.05
+    encoder_tau: Annotated[float, Range(0, 1, low_open=True)] = 0.05
     """Polyak rate of the target (key) encoder (CURL: 0.05)."""
-    actor_update_every: int = 2
+    actor_update_every: Annotated[int, AT_LEAST_1] = 2
     """Critic updates per actor and temperature update (CURL: 2)."""
-    target_update_every: int = 2
+    target_update_every: Annotated[int, AT_LEAST_1] = 2
     """Critic updates per target update (CURL: 2)."""
-    cql_weight: float = 5.0
+    cql_weight: Annotated[float, NON_NEGATIVE] = 5.0
     """Weight of the CQL(H) penalty, CURL+CQL only (CQL's min_q_weight for Gym-MuJoCo D4RL: 5)."""
-    cql_samples: int = 10
+    cql_samples: Annotated[int, AT_LEAST_1] = 10
     """Uniform actions, and policy actions at s and again at s', per state in the CQL log-sum-exp (CQL: 10)."""
-    eval_every: int = 10_000
+    eval_every: Annotated[int, AT_LEAST_1] = 10_000
     """Updates between evaluations."""
-    eval_episodes: int = 5
+    eval_episodes: Annotated[int, AT_LEAST_1] = 5
     """Episodes per evaluation."""
-    log_every: int = 1000
+    log_every: Annotated[int, AT_LEAST_1] = 1000
     """Updates between metric logs."""
-    checkpoint_every: int = 10_000
+    checkpoint_every: Annotated[int, AT_LEAST_1] = 10_000
     """Updates between checkpoints."""
 
 
@@ -232,11 +297,11 @@ class Config:
     train: TrainConfig = field(default_factory=TrainConfig)
     coworld: CoWorldConfig = field(default_factory=CoWorldConfig)
     curl: CurlConfig = field(default_factory=CurlConfig)
-    seed: int = 0
+    seed: Annotated[int, Range(0, 2**32 - 1)] = 0
     """Seed of torch, NumPy and the environments."""
-    device: str = "auto"
+    device: Annotated[str, OneOf(("auto", "cpu", "cuda"), pattern=r"cuda:\d+", pattern_text="cuda:N")] = "auto"
     """'auto' (CUDA when available), 'cpu' or 'cuda'."""
-    precision: str = "auto"
+    precision: Annotated[str, OneOf(("auto", "bf16", "fp32"))] = "auto"
     """'auto' (bf16 autocast on CUDA, fp32 on CPU), 'bf16' or 'fp32'."""
     compile: bool = False
     """torch.compile the world model and actor-critic networks (meant for CUDA; works on CPU too)."""
@@ -265,6 +330,7 @@ PRESETS: dict[str, dict[str, Any]] = {
         "train.batch_size": 8,
         "train.seq_len": 16,
         "train.prefill": 500,
+        "train.pretrain_updates": 10,
         "train.train_every": 10,
         "train.steps": 2000,
         "train.eval_every": 1000,
@@ -295,8 +361,45 @@ def make_config(preset: str = "paper", overrides: Iterable[str] | Mapping[str, A
         raise ConfigError(f"unknown preset {preset!r}; choose one of: {', '.join(PRESETS)}")
     config = apply_overrides(Config(), PRESETS[preset])
     if isinstance(overrides, Mapping):
-        return apply_overrides(config, overrides)
-    return apply_overrides(config, parse_overrides(overrides))
+        config = apply_overrides(config, overrides)
+    else:
+        config = apply_overrides(config, parse_overrides(overrides))
+    validate(config)
+    return config
+
+
+def validate(config: Config) -> None:
+    """Check every value against the range next to its field, and the few rules that tie fields together.
+
+    Raises :class:`ConfigError` naming the first bad key, its value and what it may be.
+    """
+    for dotted, value, constraint in _constrained_values(config):
+        if not constraint.contains(value):
+            raise ConfigError(f"config key {dotted}={value!r} is out of range: it must be {constraint}")
+    curl = config.curl
+    padded = 64 + 2 * curl.pad  # frames are 64 x 64 (the image size every model here takes)
+    if curl.crop > padded:
+        raise ConfigError(
+            f"config key curl.crop={curl.crop} is larger than the padded frame ({padded} = 64 + 2 * curl.pad)"
+        )
+    side = (curl.crop - 3) // 2 + 1 - 2 * (curl.num_layers - 1)  # 3x3 convs, the first with stride 2
+    if side < 1:
+        raise ConfigError(
+            f"config keys curl.crop={curl.crop} and curl.num_layers={curl.num_layers} leave no pixels after the"
+            " convolutions; use fewer layers or a larger crop"
+        )
+
+
+def _constrained_values(node: Any, prefix: str = "") -> Iterable[tuple[str, Any, Range | OneOf]]:
+    hints = typing.get_type_hints(type(node), include_extras=True)
+    for f in dataclasses.fields(node):
+        value = getattr(node, f.name)
+        if dataclasses.is_dataclass(value):
+            yield from _constrained_values(value, f"{prefix}{f.name}.")
+            continue
+        for constraint in getattr(hints[f.name], "__metadata__", ()):
+            if isinstance(constraint, (Range, OneOf)):
+                yield prefix + f.name, value, constraint
 
 
 def parse_overrides(items: Iterable[str]) -> dict[str, str]:
@@ -392,4 +495,6 @@ def from_dict(data: Mapping[str, Any]) -> Config:
                 flat[prefix + key] = value
 
     walk(data, "")
-    return apply_overrides(Config(), flat)
+    config = apply_overrides(Config(), flat)
+    validate(config)
+    return config

@@ -1,25 +1,34 @@
-"""Fixtures shared across the test packages."""
+"""Fixtures shared across the test packages.
+
+The suite runs on one torch (OpenMP) thread, in this process and in every CLI process it starts: tiny networks
+gain little from a second thread, and two threads crawl when another job holds a core (benchmarks/RESULTS.md,
+"Threads"). Tests about threads set their own count.
+"""
 
 from __future__ import annotations
 
-import contextlib
-import dataclasses
-import importlib.util
 import os
-import resource
-import subprocess
-import sys
-from collections.abc import Callable, Iterator
-from pathlib import Path
-from types import ModuleType
-from typing import Any
 
-import numpy as np
-import pytest
-import torch
+os.environ["OMP_NUM_THREADS"] = "1"  # before torch starts its thread pool; inherited by subprocesses
+os.environ["MKL_NUM_THREADS"] = "1"
 
-from coworld import envs
-from coworld.data import DatasetWriter
+import contextlib  # noqa: E402
+import dataclasses  # noqa: E402
+import importlib.util  # noqa: E402
+import resource  # noqa: E402
+import subprocess  # noqa: E402
+import sys  # noqa: E402
+from collections.abc import Callable, Iterator  # noqa: E402
+from pathlib import Path  # noqa: E402
+from types import ModuleType  # noqa: E402
+from typing import Any  # noqa: E402
+
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+import torch  # noqa: E402
+
+from coworld import envs  # noqa: E402
+from coworld.data import DatasetWriter  # noqa: E402
 
 
 def _load(path: Path, name: str) -> ModuleType:
@@ -80,6 +89,14 @@ def write_toy_dataset(path: Path, task: str = "toy_reach", episodes: int = 4, se
         writer.close(complete=True)
     env.close()
     return path
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _one_torch_thread_for_the_session() -> Iterator[None]:
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
 
 
 @pytest.fixture(scope="session")

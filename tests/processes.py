@@ -6,6 +6,7 @@ Loaded by path (``conftest.py`` exposes it as the ``processes`` fixture), since 
 from __future__ import annotations
 
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -15,6 +16,8 @@ from pathlib import Path
 from typing import Any
 
 CLI = [sys.executable, "-c", "from coworld.cli import main; main()"]
+PROGRESS_LINE = re.compile(r"\[(\d+:)?\d+:\d+<")
+"""What a plain progress line holds (``[elapsed<remaining``; see coworld/training/progress.py)."""
 DATA_HELPERS = str(Path(__file__).parent / "data" / "helpers.py")
 
 # argv: data/helpers.py, then the `coworld` arguments. The fake pixel task (slowed down) serves collect, and the
@@ -109,7 +112,8 @@ class Stopped:
 
     @property
     def stderr_lines(self) -> list[str]:
-        return [line for line in self.stderr.splitlines() if line.strip()]
+        """The lines on stderr, but for the plain progress lines written when stderr is not a terminal."""
+        return [line for line in self.stderr.splitlines() if line.strip() and not PROGRESS_LINE.search(line)]
 
 
 def stop(proc: subprocess.Popen[str], sig: int, *, group: bool = False, timeout: float = 120.0) -> Stopped:

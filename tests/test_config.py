@@ -71,3 +71,51 @@ def test_every_field_is_documented():
                     following = body[i + 1] if i + 1 < len(body) else None
                     documented = isinstance(following, ast.Expr) and isinstance(following.value, ast.Constant)
                     assert documented, f"{node.name}.{stmt.target.id} has no docstring"
+
+
+@pytest.mark.parametrize(
+    "item, message",
+    [  # the values a hostile user tried: each is refused when the config is built, with key, value and range
+        ("coworld.k=2", "config key coworld.k=2.0 is out of range: it must be in [0, 1]"),
+        ("world_model.lr=-1", "config key world_model.lr=-1.0 is out of range: it must be > 0"),
+        ("actor_critic.discount=nan", "config key actor_critic.discount=nan is out of range: it must be in (0, 1]"),
+        ("curl.batch_size=0", "config key curl.batch_size=0 is out of range: it must be >= 1"),
+        ("coworld.iterations=0", "config key coworld.iterations=0 is out of range: it must be >= 1"),
+        ("world_model.stoch=0", "config key world_model.stoch=0 is out of range: it must be >= 1"),
+        ("precision=fp8", "config key precision='fp8' is out of range: it must be one of auto, bf16, fp32"),
+        ("seed=-1", "config key seed=-1 is out of range: it must be in [0, 4294967295]"),
+        ("world_model.lr=inf", "config key world_model.lr=inf is out of range: it must be > 0"),
+        ("device=tpu", "it must be one of auto, cpu, cuda or cuda:N"),
+        ("actor_critic.horizon=1", "it must be >= 2"),
+        ("curl.crop=80", "curl.crop=80 is larger than the padded frame"),
+    ],
+)
+def test_values_out_of_range_are_refused_in_one_line(item, message):
+    with pytest.raises(ConfigError) as info:
+        make_config("tiny", [item])
+    assert message in str(info.value) and "\n" not in str(info.value)
+
+
+def test_every_non_boolean_field_has_a_range_and_the_presets_satisfy_them():
+    import typing
+
+    def unchecked(node, prefix=""):
+        hints = typing.get_type_hints(type(node), include_extras=True)
+        for f in dataclasses.fields(node):
+            value = getattr(node, f.name)
+            if dataclasses.is_dataclass(value):
+                yield from unchecked(value, f"{prefix}{f.name}.")
+            elif not isinstance(value, bool) and not getattr(hints[f.name], "__metadata__", ()):
+                yield prefix + f.name
+
+    assert list(unchecked(Config())) == []
+    for preset in ("paper", "tiny"):
+        make_config(preset)  # raises if a preset breaks a range
+    assert make_config("tiny", ["device=cuda:1"]).device == "cuda:1"
+
+
+def test_a_saved_config_is_checked_when_read_back():
+    data = to_dict(make_config("tiny"))
+    data["coworld"]["zeta"] = 0.0
+    with pytest.raises(ConfigError, match="coworld.zeta=0.0 is out of range"):
+        from_dict(data)

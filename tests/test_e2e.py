@@ -127,6 +127,16 @@ def test_offline_dreamerv2_baseline(toy_dataset, tmp_path):
     assert state["kind"] == "dreamerv2-offline" and state["updates"] == 8  # same target budget as CoWorld
     assert not (run / "source_replay.h5").exists()  # no environment interaction while training
 
+    # Evaluation is reproducible across processes, thread counts and worker counts.
+    results = []
+    for threads, workers in (("1", "1"), ("2", "2")):
+        out = tmp_path / f"eval-{threads}-{workers}.json"
+        args = ("--episodes", "3", "--threads", threads, "--workers", workers, "--out", str(out))
+        cli("eval", "--ckpt", str(run), *args)
+        results.append(json.loads(out.read_text()))
+    assert results[0]["returns"] == results[1]["returns"]
+    assert results[0]["value_estimate"] == results[1]["value_estimate"]
+
 
 def test_kill_during_training_resumes(toy_dataset, tmp_path):
     run = tmp_path / "run"

@@ -4,7 +4,9 @@ Both agents are DreamerV2 (:class:`coworld.agents.dreamerv2.DreamerV2`). The thr
 (:mod:`coworld.losses.coworld`) enter through the DreamerV2 update's hooks:
 
 * target world-model step (Alg. 1 line 9, Eq. 3): ``+ beta2 * KL[sg(e_S(o_T)) || e_T(o_T)]`` on the target
-  batch, the source model run over the same target frames without gradient;
+  batch, the source model run over the same target frames without gradient (``align_on='latent'``: the
+  posteriors' KL averaged over batch and time; ``'embedding'``: the release's softmaxed conv embeddings,
+  summed over time and averaged over the batch as its ``KLDivLoss(reduction="batchmean")`` does);
 * target critic step (line 10, Eq. 6): ``+ alpha * max(zeta * v_T(z), sg(v_S(z)))`` on the target agent's
   imagined states, ``v_S`` being the source critic fed the target features;
 * source world-model step (lines 13-15, Eqs. 4-5): the source model is also run over a target batch and its
@@ -12,7 +14,9 @@ Both agents are DreamerV2 (:class:`coworld.agents.dreamerv2.DreamerV2`). The thr
 
 Schedule: pretrain the source agent online for ``coworld.pretrain_steps`` environment steps, then
 ``coworld.iterations`` times: ``target_updates`` (K1) target updates on dataset batches, then
-``source_updates`` (K2) source updates interleaved with source environment steps at the train ratio.
+``source_updates`` (K2) source updates interleaved with source environment steps at the train ratio. The
+source episodes run on across phase boundaries (the pretraining cut and the pauses leave no mark in the
+source replay).
 A checkpoint is written after every phase; a killed run resumes from the last one. Each target phase draws
 its batches from a sampler seeded by (seed, iteration), so a resumed run sees the batches an uninterrupted one
 would have.
@@ -26,7 +30,6 @@ from typing import Any
 
 import numpy as np
 import torch
-import tqdm
 from torch import Tensor
 
 from coworld import interrupt
@@ -44,8 +47,10 @@ from coworld.losses.coworld import (
 )
 from coworld.training.checkpoint import CHECKPOINT_NAME, load_checkpoint, rng_state, save_checkpoint, set_rng_state
 from coworld.training.evaluate import evaluate
-from coworld.training.logger import Logger
+from coworld.training.logger import Logger, Rate
 from coworld.training.online import OnlineTrainer
+from coworld.training.progress import progress_bar
+from coworld.viz.training import log_open_loop
 
 CHECKPOINT_KIND = "coworld"
 UNBOUNDED = 2**62  # source phases end by pausing after K2 updates, never by a step limit
@@ -84,10 +89,12 @@ class CoWorld:
 
             def extra(_: dict[str, Tensor], aux: dict[str, Any]) -> dict[str, Tensor]:
                 if cfg.align_on == "latent":
-                    term = alignment_loss(source_post["logits"], aux["post"]["logits"])
+                    # averaged over (B, T) like every other DreamerV2 world-model term
+                    term = alignment_loss(source_post["logits"], aux["post"]["logits"]).mean()
                 else:
-                    term = embedding_alignment_loss(source_embed, aux["embed"])
-                return {"align": cfg.beta2 * term.mean()}
+                    # the release's KLDivLoss(reduction="batchmean") on (B, T, E): summed over T, divided by B
+                    term = embedding_alignment_loss(source_embed, aux["embed"]).sum(dim=1).mean()
+                return {"align": cfg.beta2 * term}
 
         metrics, post = self.target.train_world_model(batch_t, extra)
         if cfg.align:
@@ -166,13 +173,22 @@ class _SourceLearner:
         return self.coworld.source.value(state)
 
     def train(self, batch: Mapping[str, np.ndarray]) -> dict[str, float]:
-        return self.coworld.train_source(batch)
+        # the online trainer adds its own "source/" prefix (to these and to its eval/ and perf/ metrics)
+        return {key.removeprefix("source/"): value for key, value in self.coworld.train_source(batch).items()}
 
     def state_dict(self) -> dict[str, Any]:
         return self.coworld.source.state_dict()
 
     def load_state_dict(self, state: Mapping[str, Any]) -> None:
         self.coworld.source.load_state_dict(state)
+
+
+def _show(bar: Any, state: Mapping[str, Any], iterations: int) -> None:
+    """The progress bar's postfix: iteration, phase and the last evaluation return."""
+    postfix = {"iteration": f"{int(state['iteration']) + 1}/{iterations}", "phase": state["phase"]}
+    if state["last_eval"] is not None:
+        postfix["eval_return"] = f"{state['last_eval']:.1f}"
+    bar.set_postfix(postfix)
 
 
 def train_coworld(job: Any, *, device: torch.device, resumed: bool, progress: bool = True) -> dict[str, Any]:
@@ -203,7 +219,8 @@ def train_coworld(job: Any, *, device: torch.device, resumed: bool, progress: bo
             logdir=logdir / "source",
             writer=writer,
             logger=logger,
-            metric_prefix="",
+            metric_prefix="source/",
+            step_unit_prefix="source_",
         )
         # restore: the combined checkpoint once past pretraining, else the pretraining checkpoint
         source_trainer.restore()
@@ -237,30 +254,43 @@ def train_coworld(job: Any, *, device: torch.device, resumed: bool, progress: bo
 
         try:
             if progress_state["phase"] == "pretrain":
-                source_trainer.run(max_steps=cfg.pretrain_steps, progress=progress)
+                source_trainer.run(max_steps=cfg.pretrain_steps, progress=progress, cut_episodes=False)
                 progress_state["phase"] = "target"
                 save()
-            bar = tqdm.tqdm(
-                total=cfg.iterations, initial=progress_state["iteration"], unit="iter", disable=not progress
+            per_iteration = cfg.target_updates + cfg.source_updates
+            done = progress_state["iteration"] * per_iteration
+            done += cfg.target_updates if progress_state["phase"] == "source" else 0
+            bar = progress_bar(
+                total=cfg.iterations * per_iteration, initial=done, desc="coworld", unit="updates", enabled=progress
             )
+            log_every = max(1, min(config.train.log_every, cfg.target_updates))
             while progress_state["iteration"] < cfg.iterations:
                 iteration = int(progress_state["iteration"])
+                _show(bar, progress_state, cfg.iterations)
                 seed = config.seed + 1000 * (iteration + 1)
                 agent.target_batches = iter(dataset.sampler(config.train.batch_size, config.train.seq_len, seed=seed))
                 if progress_state["phase"] == "target":
-                    for _ in range(cfg.target_updates):
+                    rate = Rate(agent.target.updates)
+                    for i in range(cfg.target_updates):
                         interrupt.check()
                         metrics = agent.train_target(next(agent.target_batches))
-                    logger.log(metrics, agent.target.updates)
+                        bar.update(1)
+                        if (i + 1) % log_every == 0 or i + 1 == cfg.target_updates:
+                            metrics["target/perf/updates_per_s"] = rate(agent.target.updates)
+                            logger.log(metrics, agent.target.updates, unit="target_update")
                     progress_state["phase"] = "source"
                     save()
                 if progress_state["phase"] == "source":
                     goal = source_trainer.updates + cfg.source_updates
-                    source_trainer.run(
-                        max_steps=UNBOUNDED,
-                        progress=False,
-                        should_pause=lambda trainer, goal=goal: trainer.updates >= goal,
-                    )
+                    counted = [source_trainer.updates]
+
+                    def pause(trainer: OnlineTrainer, goal: int = goal, counted: list[int] = counted) -> bool:
+                        bar.update(trainer.updates - counted[0])
+                        counted[0] = trainer.updates
+                        return trainer.updates >= goal
+
+                    _show(bar, progress_state, cfg.iterations)
+                    source_trainer.run(max_steps=UNBOUNDED, progress=False, should_pause=pause)
                     if (iteration + 1) % cfg.eval_every == 0 or iteration + 1 == cfg.iterations:
                         result, _ = evaluate(
                             agent,
@@ -271,12 +301,18 @@ def train_coworld(job: Any, *, device: torch.device, resumed: bool, progress: bo
                             discount=config.actor_critic.discount,
                         )
                         progress_state["last_eval"] = result.mean
-                        metrics = result.metrics()
-                        logger.log(metrics, agent.target.updates)
-                        bar.set_postfix(eval_return=f"{result.mean:.1f}")
+                        logger.log(result.metrics(), agent.target.updates, unit="target_update")
+                        log_open_loop(
+                            logger,
+                            agent,
+                            dataset,
+                            agent.target.updates,
+                            tag=f"openl/{job.target}",
+                            unit="target_update",
+                        )
                     progress_state.update(iteration=iteration + 1, phase="target")
                     save()
-                    bar.update(1)
+                    _show(bar, {**progress_state, "iteration": iteration}, cfg.iterations)
             bar.close()
         finally:
             source_trainer.close()

@@ -79,14 +79,12 @@ class DreamerV2:
         self.world_model.to(self.device)
         self.actor_critic.to(self.device)
         wm, ac = config.world_model, config.actor_critic
-        self.wm_opt = torch.optim.AdamW(
-            self.world_model.parameters(), lr=wm.lr, eps=wm.eps, weight_decay=wm.weight_decay
+        self.wm_opt = _optimizer(self.world_model.parameters(), lr=wm.lr, eps=wm.eps, decay=wm.weight_decay)
+        self.actor_opt = _optimizer(
+            self.actor_critic.actor.parameters(), lr=ac.actor_lr, eps=ac.eps, decay=ac.weight_decay
         )
-        self.actor_opt = torch.optim.AdamW(
-            self.actor_critic.actor.parameters(), lr=ac.actor_lr, eps=ac.eps, weight_decay=ac.weight_decay
-        )
-        self.critic_opt = torch.optim.AdamW(
-            self.actor_critic.critic.parameters(), lr=ac.critic_lr, eps=ac.eps, weight_decay=ac.weight_decay
+        self.critic_opt = _optimizer(
+            self.actor_critic.critic.parameters(), lr=ac.critic_lr, eps=ac.eps, decay=ac.weight_decay
         )
         self.updates = 0
         """Completed calls of :meth:`train`."""
@@ -275,6 +273,13 @@ class DreamerV2:
         ):
             if module is not None:
                 module.compile()
+
+
+def _optimizer(params: Any, *, lr: float, eps: float, decay: float) -> torch.optim.AdamW:
+    """Adam with DreamerV2's weight decay: every step first scales each weight by ``1 - decay``, independent of
+    the learning rate. AdamW scales by ``1 - lr * weight_decay`` before its Adam step, so ``weight_decay =
+    decay / lr`` is exactly that step."""
+    return torch.optim.AdamW(params, lr=lr, eps=eps, weight_decay=decay / lr)
 
 
 def _to_floats(metrics: Mapping[str, Tensor]) -> dict[str, float]:

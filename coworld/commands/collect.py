@@ -80,6 +80,7 @@ def _collect_dreamerv2(options: dict[str, Any]) -> None:
             force=options["force"],
             compression=options["compression"],
             progress=not options["quiet"],
+            warn=lambda message: click.echo(f"warning: {message}", err=True),
         )
     last = "none" if summary.last_eval_return is None else f"{summary.last_eval_return:.1f}"
     click.echo(
@@ -151,7 +152,9 @@ COLLECTORS: dict[str, Callable[[dict[str, Any]], None]] = {
 @click.option("--episodes", type=click.IntRange(min=1), help="Collect exactly this many episodes.")
 @click.option("--max-steps", type=click.IntRange(min=1), help="Collect exactly this many steps (rows).")
 @click.option("--out", type=click.Path(path_type=Path), help="Dataset file [default: datasets/<task>-<quality>.h5].")
-@click.option("--seed", type=int, default=0, show_default=True, help="Seeds the environments and the policy.")
+@click.option(
+    "--seed", type=click.IntRange(0, 2**32 - 1), default=0, show_default=True, help="Seeds the environments and policy."
+)
 @click.option("--workers", type=click.IntRange(min=1), default=1, show_default=True, help="Parallel environments.")
 @click.option("--resume", is_flag=True, help="Continue a partial dataset at --out up to the requested amount.")
 @click.option("--force", is_flag=True, help="Overwrite an existing dataset at --out.")

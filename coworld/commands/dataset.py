@@ -31,6 +31,7 @@ def info(path: Path, as_json: bool) -> None:
         return
     for key, value in _info_lines(summary):
         click.echo(f"{key:<12}{value}")
+    click.echo(f"{'preview':<12}coworld viz dataset {path} --out preview.png (frames, returns; .mp4 for episodes)")
 
 
 def _info_lines(s: dict[str, Any]) -> list[tuple[str, str]]:
@@ -112,3 +113,99 @@ def merge(inputs: tuple[Path, ...], out: Path, quality: str | None, force: bool,
         click.echo(
             f"wrote {out}: {data.quality}, {count(data.num_episodes, 'episode')}, {count(data.num_steps, 'step')}"
         )
+
+
+@dataset.command("import")
+@click.argument("source_format", metavar="FORMAT", type=click.Choice(["vd4rl"]))
+@click.argument("path", type=click.Path(path_type=Path))
+@click.option("--task", required=True, help="Our task the data belongs to, e.g. walker_walk (see `coworld tasks`).")
+@click.option("--out", type=click.Path(dir_okay=False, path_type=Path), help="Default datasets/<task>-<quality>.h5.")
+@click.option(
+    "--quality", type=click.Choice(QUALITIES), help="Default: read from V-D4RL's folder name (.../medium_replay/...)."
+)
+@click.option("--resize", type=int, default=None, help="Resize frames to this size (64; area filter), e.g. 84px data.")
+@click.option("--resume", is_flag=True, help="Continue an interrupted import of the same folder into --out.")
+@click.option("--force", is_flag=True, help="Overwrite --out if it exists.")
+@click.option("--compression", type=click.Choice(CODECS), default="gzip", show_default=True, help="Frame codec.")
+def import_dataset(
+    source_format: str,
+    path: Path,
+    task: str,
+    out: Path | None,
+    quality: str | None,
+    resize: int | None,
+    resume: bool,
+    force: bool,
+    compression: str,
+) -> None:
+    """Convert a dataset of another format into format v1.
+
+    FORMAT vd4rl: PATH is a V-D4RL folder, its 64px layout (.npz episodes) or its 84px one (.hdf5 shards; needs
+    --resize 64).
+    """
+    from coworld.data.vd4rl import import_vd4rl
+
+    summary = import_vd4rl(
+        path,
+        out,
+        task=task,
+        quality=quality,
+        resize=resize,
+        resume=resume,
+        force=force,
+        compression=compression,
+        progress=sys.stderr.isatty(),
+    )
+    resumed = f" ({summary.skipped:,} already there)" if summary.skipped else ""
+    click.echo(f"wrote {summary.path}: {summary.episodes:,} episodes{resumed}, {summary.steps:,} steps of {task}")
+
+
+@dataset.command("export")
+@click.argument("path", type=click.Path(path_type=Path))
+@click.option("--to", "target", required=True, type=click.Choice(["minari", "npz-episodes"]), help="Output format.")
+@click.option("--name", help="Minari dataset id; default coworld/<task>/<quality>-v0.")
+@click.option("--out", type=click.Path(file_okay=False, path_type=Path), help="npz-episodes: the folder to write.")
+@click.option("--force", is_flag=True, help="Replace an existing Minari dataset or folder.")
+@click.option("--author", help="Minari metadata: the dataset's author.")
+@click.option("--author-email", help="Minari metadata: the author's e-mail.")
+@click.option("--code-permalink", help="Minari metadata: a link to the code that made the data.")
+def export(
+    path: Path,
+    target: str,
+    name: str | None,
+    out: Path | None,
+    force: bool,
+    author: str | None,
+    author_email: str | None,
+    code_permalink: str | None,
+) -> None:
+    """Export a dataset to Minari or to dreamer-style npz episodes.
+
+    PATH is a dataset file, or a name such as walker_uphill-medium-replay (datasets/<task>-<quality>.h5).
+
+    \b
+    --to minari        a Minari dataset in MINARI_DATASETS_PATH (default ~/.minari/datasets)
+    --to npz-episodes  one .npz per episode (V-D4RL's 64px layout) in the new folder --out
+    """
+    from coworld.data.export import export_minari, export_npz_episodes
+    from coworld.errors import ConfigError
+
+    progress = sys.stderr.isatty()
+    if target == "npz-episodes":
+        if out is None or name is not None:
+            raise ConfigError("--to npz-episodes writes the folder --out FOLDER (and takes no --name)")
+        export_npz_episodes(path, out, force=force, progress=progress)
+        click.echo(f"wrote {out}: {len(list(out.glob('*.npz'))):,} episodes as .npz files")
+        return
+    if out is not None:
+        raise ConfigError("--to minari writes into Minari's dataset folder (MINARI_DATASETS_PATH), not --out")
+    dataset_id = export_minari(
+        path,
+        name,
+        force=force,
+        progress=progress,
+        author=author,
+        author_email=author_email,
+        code_permalink=code_permalink,
+    )
+    click.echo(f"wrote Minari dataset {dataset_id}: open it with minari.load_dataset({dataset_id!r})")

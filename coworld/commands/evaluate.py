@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import sys
 from pathlib import Path
 
 import click
@@ -14,11 +13,15 @@ from coworld.commands.options import threads_option
 
 @click.command("eval")
 @click.option("--ckpt", "ckpt", required=True, type=click.Path(), help="Run folder or its checkpoint.pt.")
-@click.option("--episodes", type=int, default=10, show_default=True)
-@click.option("--workers", type=int, default=1, show_default=True, help="Environments stepped in parallel.")
-@click.option("--seed", type=int, default=0, show_default=True)
+@click.option("--episodes", type=click.IntRange(min=1), default=10, show_default=True)
+@click.option(
+    "--workers", type=click.IntRange(min=1), default=1, show_default=True, help="Environments stepped in parallel."
+)
+@click.option(
+    "--seed", type=click.IntRange(0, 2**32 - 1), default=0, show_default=True, help="Episode e is seeded by (seed, e)."
+)
 @click.option("--video", type=click.Path(dir_okay=False), default=None, help="Write the first episodes as MP4/GIF.")
-@click.option("--video-episodes", type=int, default=1, show_default=True)
+@click.option("--video-episodes", type=click.IntRange(min=0), default=1, show_default=True)
 @click.option(
     "--out", type=click.Path(dir_okay=False), default=None, help="Results JSON; default <run folder>/eval.json."
 )
@@ -37,8 +40,6 @@ def evaluate(ckpt, episodes, workers, seed, video, video_episodes, out, task, de
     from coworld.training.evaluate import evaluate as run_eval
     from coworld.training.evaluate import load_trained_agent, write_video
 
-    if episodes < 1 or workers < 1:
-        raise CoworldError("--episodes and --workers must be at least 1")
     workers, note = sensible_workers(workers, episodes)
     if note:
         click.echo(f"note: {note}", err=True)
@@ -49,6 +50,15 @@ def evaluate(ckpt, episodes, workers, seed, video, video_episodes, out, task, de
         check_writable(Path(video).parent, "--video")
     with interrupt.explain(lambda: "no results were written (an evaluation does not resume); rerun the same command"):
         agent, info, config = load_trained_agent(Path(ckpt), device=device)
+        if task is not None:
+            from coworld.envs import task_spec
+
+            trained, asked = task_spec(info["target"]), task_spec(task)
+            if asked.action_size != trained.action_size:
+                raise CoworldError(
+                    f"{task} takes {asked.action_size}-d actions but this agent was trained on {info['target']}"
+                    f" ({trained.action_size}-d); evaluate it on a task of the same action size"
+                )
         task = task or info["target"]
         discount = config.actor_critic.discount if hasattr(agent, "value") else None
         result, frames = run_eval(
@@ -59,7 +69,7 @@ def evaluate(ckpt, episodes, workers, seed, video, video_episodes, out, task, de
             seed=seed,
             discount=discount,
             video_episodes=video_episodes if video else 0,
-            progress=sys.stderr.isatty(),
+            progress=True,
         )
     result.extra.update(algo=info["algo"], checkpoint=str(ckpt), seed=seed)
     click.echo(result.summary())

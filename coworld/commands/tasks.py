@@ -12,20 +12,44 @@ from coworld.errors import ConfigError
 
 @click.command("tasks")
 def tasks() -> None:
-    """List every task and the source -> target pairs."""
-    header = ("task", "family", "actions", "episode", "repeat", "modification")
+    """List every task (with its reference return and medium level) and the source -> target pairs."""
+    header = ("task", "family", "actions", "episode", "repeat", "random", "reference", "medium", "modification")
     rows = [
-        (t.name, t.family, str(t.action_size), str(t.episode_length), str(t.action_repeat), t.modification or "-")
+        (
+            t.name,
+            t.family,
+            str(t.action_size),
+            str(t.episode_length),
+            str(t.action_repeat),
+            _number(t.random_return),
+            _number(t.reference_return),
+            _number(t.medium_return),
+            t.modification or "-",
+        )
         for t in TASKS.values()
     ]
     widths = [max(len(row[i]) for row in [header, *rows]) for i in range(len(header) - 1)]
     for row in [header, *rows]:
         click.echo("  ".join(cell.ljust(width) for cell, width in zip(row[:-1], widths, strict=True)) + "  " + row[-1])
     click.echo("\nepisode: agent steps per episode; repeat: simulator steps per agent step.")
+    click.echo("random: mean return of uniform random actions; reference: best return known to be reachable;")
+    click.echo(
+        "medium: a third of it, where `coworld collect` stops a medium-replay dataset (--stop-return overrides)."
+    )
+    click.echo("\nwhere the references come from:")
+    sources: dict[str, list[str]] = {}
+    for t in TASKS.values():
+        sources.setdefault(t.reference_source, []).append(t.name)
+    for source, names in sources.items():
+        click.echo(f"  {', '.join(names)}: {source}")
     click.echo("\nsource -> target pairs:")
     width = max(len(source) for source, _ in PAIRS)
     for source, target in PAIRS:
         click.echo(f"  {source.ljust(width)} -> {target}")
+
+
+def _number(value: float | None) -> str:
+    return "-" if value is None else f"{value:.1f}"
 
 
 @click.command("render")

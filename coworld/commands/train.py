@@ -31,7 +31,7 @@ RESUME = "rerun the same command to resume"
     default=None,
     help="Run folder; default runs/<algo>-<source>-<target>-s<seed>. An existing one is resumed.",
 )
-@click.option("--seed", type=int, default=None, help="Seed (default: config seed, 0).")
+@click.option("--seed", type=click.IntRange(0, 2**32 - 1), default=None, help="Seed (default: config seed, 0).")
 @click.option("--device", type=click.Choice(["auto", "cpu", "cuda"]), default=None, help="Default auto.")
 @click.option(
     "--set",
@@ -67,9 +67,11 @@ def train(target, source, dataset, algo, preset, logdir, seed, device, overrides
         overrides=overrides,
     )
     check_writable(job.logdir, "--logdir")
+    for warning in job.warnings:
+        click.echo(f"warning: {warning}", err=True)
     kind = "offline on the dataset alone" if algo in MODEL_FREE or algo == "dreamerv2" else f"with source {source}"
     click.echo(f"train {algo} on {job.dataset} ({target}, {kind}); run folder {job.logdir}")
-    if (job.logdir / "checkpoint.pt").exists():
+    if job.resume and (job.logdir / "checkpoint.pt").exists():
         click.echo(f"resuming from {job.logdir / 'checkpoint.pt'}")
     try:
         with interrupt.explain(lambda: f"{_kept(job.logdir)}; {RESUME}"):

@@ -9,8 +9,10 @@ Modifications:
 * **slope** (``*_uphill`` / ``*_downhill``, 15 degrees): the floor stays flat and gravity is rotated by the
   slope angle about the y axis, which gives exactly the dynamics of a tilted floor (``9.81 sin 15 = 2.54`` m/s^2
   along the floor, ``9.47`` into it). The tracking camera and the light are rotated by the same angle, so the
-  frames show a tilted floor with gravity pointing down the image. Rewards are dm_control's, measured in the
-  floor frame: speed along the slope, torso height above the slope, uprightness relative to the slope normal.
+  frames show a tilted floor with gravity pointing down the image. The floor is drawn 1 km each way
+  (:data:`FLOOR_HALF_LENGTH`), so a body sliding down the slope stays on visible ground. Rewards are
+  dm_control's, measured in the floor frame: speed along the slope, torso height above the slope, uprightness
+  relative to the slope normal.
 * **disabled actuators** (``walker_nofoot``: right ankle; ``cheetah_nopaw``: front thigh, shin and foot):
   ``gear="0"`` on their motors. The action size is unchanged; those action entries have no effect.
 
@@ -42,6 +44,12 @@ SLOPE_DEGREES = 15.0
 
 GRAVITY = 9.81
 """MuJoCo's default gravity magnitude, m/s^2."""
+
+FLOOR_HALF_LENGTH = 1000.0
+"""Half-length (m) of the drawn floor on the slope tasks, centred on the start. dm_control draws the walker's floor
+over x in [-2, 498] and the cheetah's over [-2, 198]; on an uphill the body slides back past x = -2 (a random
+walker reaches x = -17.8 in one episode), and the frames would show it in an empty sky. Collisions are unchanged:
+a MuJoCo plane is infinite for contacts, its size only sets what is drawn."""
 
 _SUB_STEPS = {"walker": 10, "cheetah": 1}
 """Physics steps per control step, as in ``dm_control.suite`` (walker 0.025 s control step, cheetah 0.01 s)."""
@@ -86,7 +94,17 @@ def model_xml(variant: DMCVariant) -> tuple[str, dict[str, bytes]]:
         motor.set("gear", "0")
     if variant.slope_degrees:
         _tilt(root, text, assets, math.radians(variant.slope_degrees))
+        _extend_floor(root)
     return ET.tostring(root, encoding="unicode"), assets
+
+
+def _extend_floor(root: ET.Element) -> None:
+    """Draw the floor plane over ``[-FLOOR_HALF_LENGTH, FLOOR_HALF_LENGTH]`` along x (see the constant)."""
+    floor = root.find(".//worldbody/geom[@type='plane']")
+    assert floor is not None, "the domain has no floor plane"
+    _, half_width, grid = floor.get("size", "1 1 1").split()
+    floor.set("pos", "0 0 0")
+    floor.set("size", f"{FLOOR_HALF_LENGTH:g} {half_width} {grid}")
 
 
 def _tilt(root: ET.Element, text: str, assets: dict[str, bytes], angle: float) -> None:

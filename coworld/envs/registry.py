@@ -6,12 +6,20 @@ Every task is a Gymnasium env whose observation is the image itself: ``Box(0, 25
 
 Returns in :class:`TaskSpec`:
 
-* ``reference_return`` -- the top of the score scale, used for "medium level" datasets and normalised scores.
-  DMC: 1000, the largest possible sum of per-control-step rewards in [0, 1] over the 1000 control steps of an
-  episode (an agent step's reward sums its repeated control steps, so the bound holds for any action repeat).
-  Meta-World: 5000, the bound of its reward (at most 10 per step over 500 steps; the paper's Table 2 reports
-  1397-3794 for its best agents). Toy: the mean return of the scripted
-  :meth:`~coworld.envs.toy.ToyReachEnv.expert_action` policy.
+* ``reference_return`` -- the best return known to be reachable on the task, with its provenance in
+  ``reference_source``. It sets the medium level of the medium-replay and medium datasets (the paper: "1/3 of the
+  maximum score that the DreamerV2 agent can achieve") and the top of the normalized score.
+
+  - ``walker_walk`` 964.9 and ``cheetah_run`` 816.1: DreamerV2's published DMC-vision scores (the scores file
+    released with its code, ``scores/dmc-vision-dreamerv2.json``): the maximum over its 2M-frame training curve of
+    the mean evaluation return of its 5 seeds.
+  - The modified DMC tasks have no published DreamerV2 score; they use the plain task's (walker 964.9, cheetah
+    816.1). On a harder variant DreamerV2 may never reach a third of it (the later CoWorld paper reports 225 for
+    its best agent on cheetah_uphill): a medium-replay collection there runs to its step limit.
+  - Meta-World has no published DreamerV2 return for these tasks; the stand-in is the larger of the mean return
+    of Meta-World's scripted expert policy on our setup (10 episodes, ``benchmarks/reference_returns.py``) and
+    the best mean return any agent reaches on the task in the CoWorld paper's Table 2.
+  - Toy tasks: the scripted :meth:`~coworld.envs.toy.ToyReachEnv.expert_action` policy.
 * ``random_return`` -- mean return of uniformly random actions (how measured: comments at ``_DMC`` and ``_TOY``).
   Meta-World's have a large spread (drawer-close 1334 +- 1788: random arms sometimes shut the drawer).
 """
@@ -47,9 +55,23 @@ class TaskSpec:
     base: str
     """What it is built from."""
     reference_return: float | None
-    """Top of the score scale (see the module docstring)."""
+    """The best return known to be reachable (see the module docstring)."""
     random_return: float | None
     """Mean return of uniform random actions (see the module docstring)."""
+    reference_source: str = ""
+    """Where ``reference_return`` comes from, in a few words."""
+
+    @property
+    def embodiment(self) -> str:
+        """The body the agent controls: ``walker``/``cheetah`` (DMC), ``sawyer`` (every Meta-World task), ``dot``."""
+        if self.family == "dmc":
+            return self.name.split("_")[0]
+        return {"metaworld": "sawyer", "toy": "dot"}[self.family]
+
+    @property
+    def medium_return(self) -> float | None:
+        """The medium level: a third of ``reference_return`` (where medium-replay collection stops)."""
+        return None if self.reference_return is None else self.reference_return / 3.0
 
 
 @dataclass(frozen=True)
@@ -97,6 +119,23 @@ _METAWORLD = [
     ("mw_assembly", "assembly-v3", 211.9),
 ]
 
+# DreamerV2's published DMC-vision scores (danijar/dreamerv2, scores/dmc-vision-dreamerv2.json): the maximum over
+# the training curve (30k to 1.98M frames) of the 5-seed mean evaluation return.
+_DREAMERV2_DMC = {"walker": 964.9, "cheetah": 816.1}
+
+# Meta-World stand-ins: (scripted expert mean return, 10 episodes, benchmarks/reference_returns.py;
+# best mean return in the CoWorld paper's Table 2 where the task is a target there, else None).
+_METAWORLD_REFERENCE = {
+    "mw_window_close": (3616.8, None),
+    "mw_handle_press": (1338.4, 3903.0),
+    "mw_drawer_close": (4256.0, None),
+    "mw_stick_push": (1266.0, None),
+    "mw_door_close": (2139.1, 3419.0),
+    "mw_button_press_topdown": (3791.7, 3794.0),
+    "mw_button_press": (564.1, 3623.0),
+    "mw_assembly": (1193.5, 1397.0),
+}
+
 # Toy returns: 200 episodes, seeds 0-199, the env's own seeded action sampler (tests/envs/test_toy.py).
 _TOY = [
     # name, modification, reference_return (scripted expert), random_return
@@ -105,15 +144,31 @@ _TOY = [
 ]
 
 
+def _metaworld_reference(name: str) -> tuple[float, str]:
+    expert, paper = _METAWORLD_REFERENCE[name]
+    if paper is not None and paper > expert:
+        return paper, "no published DreamerV2 return; stand-in: best mean return in the CoWorld paper's Table 2"
+    return expert, "no published DreamerV2 return; stand-in: Meta-World's scripted expert, mean of 10 episodes"
+
+
 def _build_tasks() -> dict[str, TaskSpec]:
     tasks: list[TaskSpec] = []
     for name, modification, base, random_return in _DMC:
-        tasks.append(TaskSpec(name, "dmc", 6, 500, 2, modification, base, 1000.0, random_return))
+        domain = name.split("_")[0]
+        plain = {"walker": "walker_walk", "cheetah": "cheetah_run"}[domain]
+        source = "DreamerV2's published DMC-vision score (max of the 5-seed mean curve)"
+        if name != plain:
+            source = f"no published DreamerV2 score; stand-in: {plain}'s DreamerV2 score"
+        reference = _DREAMERV2_DMC[domain]
+        tasks.append(TaskSpec(name, "dmc", 6, 500, 2, modification, base, reference, random_return, source))
     for name, mw_name, random_return in _METAWORLD:
-        tasks.append(TaskSpec(name, "metaworld", 4, 500, 1, "", f"Meta-World {mw_name}", 5000.0, random_return))
+        reference, source = _metaworld_reference(name)
+        base = f"Meta-World {mw_name}"
+        tasks.append(TaskSpec(name, "metaworld", 4, 500, 1, "", base, reference, random_return, source))
     for name, modification, reference_return, random_return in _TOY:
         base = "NumPy dot-to-goal reaching"
-        tasks.append(TaskSpec(name, "toy", 2, 50, 1, modification, base, reference_return, random_return))
+        source = "scripted expert policy, mean of 200 episodes"
+        tasks.append(TaskSpec(name, "toy", 2, 50, 1, modification, base, reference_return, random_return, source))
     return {task.name: task for task in tasks}
 
 
@@ -135,6 +190,11 @@ PAIRS: tuple[tuple[str, str], ...] = (
     ("toy_reach", "toy_reach_shifted"),
 )
 """(source, target) pairs: the paper's DMC and Meta-World transfer settings, and the toy pair."""
+
+
+def paired_source(target: str) -> str | None:
+    """The source task the paper pairs with ``target`` (:data:`PAIRS`), or None where it pairs none."""
+    return next((source for source, paired in PAIRS if paired == target), None)
 
 
 def task_spec(name: str) -> TaskSpec:

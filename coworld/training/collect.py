@@ -15,7 +15,7 @@ whole episode.
 from __future__ import annotations
 
 import shutil
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -30,7 +30,7 @@ from coworld.errors import CoworldError, DatasetError
 from coworld.storage import check_writable
 from coworld.training.logger import Logger
 from coworld.training.online import OnlineTrainer
-from coworld.training.run import prepare_run_dir, resolve_device, seed_everything
+from coworld.training.run import prepare_run_dir, preset_warnings, resolve_device, seed_everything
 
 TRAINED_QUALITIES = ("medium-replay", "medium", "expert")
 
@@ -45,13 +45,12 @@ class DreamerCollectSummary:
 
 
 def default_stop_return(task: str, quality: str = "medium-replay") -> float | None:
-    """When training stops early: at the medium level, a third of the task's reference return, for medium-replay
-    and medium data; never for expert data (the agent trains for all its steps). None where no reference is
-    known."""
-    reference = envs.task_spec(task).reference_return
-    if quality == "expert" or reference is None:
+    """When training stops early: at the medium level, a third of the task's reference return
+    (:attr:`~coworld.envs.TaskSpec.medium_return`, ``coworld tasks`` lists it), for medium-replay and medium data;
+    never for expert data (the agent trains for all its steps). None where no reference is known."""
+    if quality == "expert":
         return None
-    return reference / 3.0
+    return envs.task_spec(task).medium_return
 
 
 def collect_dreamerv2(
@@ -70,8 +69,12 @@ def collect_dreamerv2(
     force: bool = False,
     compression: str = "gzip",
     progress: bool = True,
+    warn: Callable[[str], None] | None = None,
 ) -> DreamerCollectSummary:
-    """Train DreamerV2 online in ``task`` and write the dataset ``out`` (see the module docstring)."""
+    """Train DreamerV2 online in ``task`` and write the dataset ``out`` (see the module docstring).
+
+    ``warn`` receives one-line warnings (the paper preset on a CPU) once the request is checked, before any work.
+    """
     if quality not in TRAINED_QUALITIES:
         raise CoworldError(f"the dreamerv2 collector makes {', '.join(TRAINED_QUALITIES)} datasets, not {quality!r}")
     spec = envs.task_spec(task)
@@ -89,6 +92,8 @@ def collect_dreamerv2(
         stop_return = default_stop_return(task, quality)
     limit = max_steps if max_steps is not None else config.train.steps
     info = {"task": task, "quality": quality, "dataset": str(out), "max_steps": limit, "stop_return": stop_return}
+    for message in preset_warnings(preset, config.device) if warn is not None else ():
+        warn(message)
     resumed = prepare_run_dir(run_dir, config, info)
     seed_everything(config.seed)
     from coworld.agents.dreamerv2 import DreamerV2

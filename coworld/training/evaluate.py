@@ -2,24 +2,27 @@
 
 An agent is anything with ``policy(obs, state, mode="eval", is_first=...) -> (action, state)``; agents
 with a critic also offer ``value(state) -> (N,)``, the critic's estimate for the states the policy has just
-seen. Episodes run in ``workers`` environments side by side (worker processes when more than one), each
-seeded differently; the result holds the return of every episode, the success rate on tasks that report
-success, and Figure 4(b)'s value check: the critic's estimate against the true discounted return of the same
-episode from the same step.
+seen. Episodes run in ``workers`` environments side by side (worker processes when more than one); episode
+``e`` is seeded by ``(seed, e)`` alone, so the same checkpoint and seed give the same returns whatever the
+worker count. The result holds the return of every episode, its normalized score against the task's random and
+reference returns, the success rate on tasks that report success, and Figure 4(b)'s value check: the critic's
+estimate against the true discounted return of the same episode from the same step (:func:`true_values`).
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Protocol
 
 import numpy as np
-import tqdm
+import torch
 
 from coworld import envs, interrupt
+from coworld.training.progress import progress_bar
 
 
 class Agent(Protocol):
@@ -55,8 +58,21 @@ class EvalResult:
     def success_rate(self) -> float | None:
         return None if self.successes is None else float(np.mean(self.successes))
 
+    @property
+    def normalized_score(self) -> float | None:
+        """``100 * (mean - random) / (reference - random)`` with the task's returns (``coworld tasks``)."""
+        from coworld.data.reader import normalized_score
+
+        spec = envs.task_spec(self.task)
+        reference = {"random_return": spec.random_return, "reference_return": spec.reference_return}
+        score = normalized_score(self.mean, reference)
+        return None if score is None else float(score)
+
     def summary(self) -> str:
-        text = f"{self.task}: return {self.mean:.1f} ± {self.std:.1f} over {len(self.returns)} episodes"
+        episodes = len(self.returns)
+        text = f"{self.task}: return {self.mean:.1f} ± {self.std:.1f} over {episodes} episode{'s' * (episodes != 1)}"
+        if self.normalized_score is not None:
+            text += f" (normalized {self.normalized_score:.1f})"
         if self.success_rate is not None:
             text += f", success {100 * self.success_rate:.0f}%"
         if self.value_estimate is not None and self.value_true is not None:
@@ -69,6 +85,8 @@ class EvalResult:
     def metrics(self, prefix: str = "") -> dict[str, float]:
         """The logged scalars: ``eval/return``, ``eval/return_std`` and, when measured, success and value check."""
         out = {f"{prefix}eval/return": self.mean, f"{prefix}eval/return_std": self.std}
+        if self.normalized_score is not None:
+            out[f"{prefix}eval/normalized_score"] = self.normalized_score
         if self.success_rate is not None:
             out[f"{prefix}eval/success"] = self.success_rate
         if self.value_estimate is not None and self.value_true is not None:
@@ -78,7 +96,9 @@ class EvalResult:
 
     def to_dict(self) -> dict[str, Any]:
         data = asdict(self)
-        data.update(mean=self.mean, std=self.std, success_rate=self.success_rate)
+        data.update(
+            mean=self.mean, std=self.std, normalized_score=self.normalized_score, success_rate=self.success_rate
+        )
         return data
 
     def to_json(self, path: str | Path) -> None:
@@ -96,6 +116,53 @@ def discounted_returns(rewards: np.ndarray, discount: float) -> np.ndarray:
     return out
 
 
+def true_values(rewards: np.ndarray, discount: float) -> np.ndarray:
+    """What the critic's ``v(z_t)`` estimates, measured: the discounted return from step ``t`` of an episode.
+
+    ``rewards (T,)``: ``rewards[t]`` is earned by the action taken at observation ``o_t``. A DreamerV2 critic
+    at the state ``z_t`` that filtered ``o_t`` regresses lambda-returns ``R_t = r_t + gamma * ...`` whose first
+    reward is the one received on *arriving* at ``o_t`` (the replay convention: step ``t`` holds the reward
+    of the action that led to it, zero at the first step). So the true value of step ``t`` is
+    ``sum_k gamma^k r'_{t+k}`` over the arrival rewards ``r' = [0, rewards[0], ..., rewards[T-1]]``; returns
+    ``(T,)`` for the steps ``0 .. T-1`` where the policy acted.
+    """
+    arrival = np.concatenate([[0.0], np.asarray(rewards, np.float64)])
+    return discounted_returns(arrival, discount)[:-1]
+
+
+def episode_seed(seed: int, episode: int) -> int:
+    """The seed of evaluation episode ``episode`` (its environment and its agent-side randomness)."""
+    return int(np.random.SeedSequence([seed, episode]).generate_state(1)[0])
+
+
+class _EpisodeRandomness:
+    """Torch random streams of one evaluation episode, swapped into the global generators while its agent acts.
+
+    The agent samples its latents (DreamerV2) from torch's global generators; giving every episode its own
+    stream, and stepping the policy one episode at a time, makes an episode's actions depend on its seed alone,
+    not on how many episodes run side by side or which worker runs it.
+    """
+
+    def __init__(self, seed: int, cuda: bool) -> None:
+        self.cpu = torch.Generator().manual_seed(seed).get_state()
+        self.cuda = None
+        if cuda:
+            generator = torch.Generator(device="cuda").manual_seed(seed)
+            self.cuda = generator.get_state()
+
+    @contextlib.contextmanager
+    def active(self) -> Iterator[None]:
+        torch.set_rng_state(self.cpu)
+        if self.cuda is not None:
+            torch.cuda.set_rng_state(self.cuda)
+        try:
+            yield
+        finally:
+            self.cpu = torch.get_rng_state()
+            if self.cuda is not None:
+                self.cuda = torch.cuda.get_rng_state()
+
+
 def evaluate(
     agent: Agent,
     task: str,
@@ -109,6 +176,11 @@ def evaluate(
 ) -> tuple[EvalResult, list[np.ndarray]]:
     """Run ``episodes`` evaluation episodes of ``agent`` on ``task``.
 
+    Reproducible: episode ``e`` uses :func:`episode_seed` ``(seed, e)`` for its environment and for the torch
+    random stream its agent acts with, and the policy steps one episode at a time, so the returns depend on
+    ``seed`` alone, not on ``workers`` (which only sets how many environments step side by side). Torch's
+    global random state is left as it was.
+
     Args:
         discount: when given and the agent has ``value``, also measure the value check with this discount.
         video_episodes: how many of the first episodes to keep frames of.
@@ -119,6 +191,7 @@ def evaluate(
     workers = max(1, min(workers, episodes))
     spec = envs.task_spec(task)
     want_values = discount is not None and hasattr(agent, "value")
+    cuda = torch.cuda.is_available() and getattr(getattr(agent, "device", None), "type", "cpu") == "cuda"
     returns: list[float] = []
     lengths: list[int] = []
     successes: list[bool] = []
@@ -126,52 +199,55 @@ def evaluate(
     trues: list[float] = []
     videos: list[np.ndarray] = []
     venv = envs.make_vector(task, workers, seed=seed)
-    bar = tqdm.tqdm(total=episodes, desc=f"eval {task}", unit="ep", disable=not progress, leave=False)
+    bar = progress_bar(total=episodes, desc=f"eval {task}", unit="episodes", enabled=progress, leave=False)
+    devices = [torch.cuda.current_device()] if cuda else []
     try:
-        done_episodes = 0
-        round_index = 0
-        while done_episodes < episodes:
-            n = min(workers, episodes - done_episodes)
-            obs, _ = venv.reset(seed=[seed + 1000 * round_index + i for i in range(workers)])
-            state = None
-            is_first = np.ones(workers, dtype=bool)
-            alive = np.zeros(workers, dtype=bool)
-            alive[:n] = True
-            ep_rewards = [[] for _ in range(workers)]
-            ep_values = [[] for _ in range(workers)]
-            ep_success = np.zeros(workers, dtype=bool)
-            frames = [[obs[i]] for i in range(workers)]
-            for _ in range(spec.episode_length):
-                interrupt.check()
-                action, state = agent.policy(obs, state, mode="eval", is_first=is_first)
-                if want_values:
-                    value = np.asarray(agent.value(state), dtype=np.float64)  # type: ignore[attr-defined]
-                obs, reward, terminated, truncated, info = venv.step(action)
-                is_first = np.zeros(workers, dtype=bool)
-                for i in np.flatnonzero(alive):
-                    ep_rewards[i].append(float(reward[i]))
+        with torch.random.fork_rng(devices=devices):
+            done_episodes = 0
+            while done_episodes < episodes:
+                n = min(workers, episodes - done_episodes)
+                ids = [done_episodes + i for i in range(workers)]  # rows past n are idle this round
+                obs, _ = venv.reset(seed=[episode_seed(seed, e) for e in ids])
+                rngs = [_EpisodeRandomness(episode_seed(seed, e), cuda) for e in ids[:n]]
+                states: list[Any] = [None] * n
+                alive = np.zeros(workers, dtype=bool)
+                alive[:n] = True
+                ep_rewards: list[list[float]] = [[] for _ in range(n)]
+                ep_values: list[list[float]] = [[] for _ in range(n)]
+                ep_success = np.zeros(n, dtype=bool)
+                frames = [[obs[i]] for i in range(n)]
+                actions = np.zeros((workers, *venv.single_action_space.shape), np.float32)
+                for t in range(spec.episode_length):
+                    interrupt.check()
+                    for i in np.flatnonzero(alive):
+                        with rngs[i].active():
+                            first = np.array([t == 0])
+                            action, states[i] = agent.policy(obs[i : i + 1], states[i], mode="eval", is_first=first)
+                            if want_values:
+                                ep_values[i].append(float(np.asarray(agent.value(states[i]))[0]))  # type: ignore[attr-defined]
+                        actions[i] = action[0]
+                    obs, reward, terminated, truncated, info = venv.step(actions)
+                    for i in np.flatnonzero(alive):
+                        ep_rewards[i].append(float(reward[i]))
+                        if "success" in info:
+                            ep_success[i] |= bool(info["success"][i])
+                        if done_episodes + i < video_episodes:
+                            frames[i].append(obs[i])
+                    alive &= ~(terminated | truncated)
+                    if not alive.any():
+                        break
+                for i in range(n):
+                    rewards = np.asarray(ep_rewards[i])
+                    returns.append(float(rewards.sum()))
+                    lengths.append(len(rewards))
+                    successes.append(bool(ep_success[i]))
                     if want_values:
-                        ep_values[i].append(float(value[i]))
-                    if "success" in info:
-                        ep_success[i] |= bool(info["success"][i])
+                        estimates.append(float(np.mean(ep_values[i])))
+                        trues.append(float(np.mean(true_values(rewards, discount))))  # type: ignore[arg-type]
                     if done_episodes + i < video_episodes:
-                        frames[i].append(obs[i])
-                alive &= ~(terminated | truncated)
-                if not alive.any():
-                    break
-            for i in range(n):
-                rewards = np.asarray(ep_rewards[i])
-                returns.append(float(rewards.sum()))
-                lengths.append(len(rewards))
-                successes.append(bool(ep_success[i]))
-                if want_values:
-                    estimates.append(float(np.mean(ep_values[i])))
-                    trues.append(float(np.mean(discounted_returns(rewards, discount))))  # type: ignore[arg-type]
-                if done_episodes + i < video_episodes:
-                    videos.append(np.stack(frames[i]))
-            done_episodes += n
-            round_index += 1
-            bar.update(n)
+                        videos.append(np.stack(frames[i]))
+                done_episodes += n
+                bar.update(n)
     finally:
         bar.close()
         venv.close()

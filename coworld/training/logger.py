@@ -1,13 +1,15 @@
 """One logger with pluggable outputs: console, JSON lines and TensorBoard.
 
 Keys are namespaced (``wm/``, ``actor/``, ``critic/``, ``coworld/``, ``eval/``, ...). Every call to
-:meth:`Logger.log` writes one record at one step to every output.
+:meth:`Logger.log` writes one record at one step to every output; :meth:`Logger.log_image` writes a picture to
+TensorBoard (e.g. the open-loop prediction strips, ``openl/<task>``).
 """
 
 from __future__ import annotations
 
 import json
 import math
+import sys
 import time
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -16,6 +18,9 @@ from typing import Any
 import tqdm
 
 OUTPUTS = ("console", "jsonl", "tensorboard")
+
+CONSOLE_KEYS = ("eval/", "/loss", "perf/", "coworld/")
+"""Metrics whose key contains one of these go to the console too (all go to the files)."""
 
 
 class Logger:
@@ -41,11 +46,16 @@ class Logger:
             self._tb = SummaryWriter(str(self.logdir / "tb"))
         self._start = time.time()
 
-    def log(self, metrics: Mapping[str, Any], step: int) -> None:
-        """Record scalar ``metrics`` at ``step``; non-finite values are kept (as null in JSON)."""
+    def log(self, metrics: Mapping[str, Any], step: int, unit: str = "step") -> None:
+        """Record scalar ``metrics`` at ``step``, which counts ``unit`` (``env_step``, ``update``,
+        ``target_update``, ...); non-finite values are kept (as null in JSON).
+
+        Files get every metric; the console gets one line of the headline ones (:data:`CONSOLE_KEYS`),
+        labelled with what the step counts, e.g. ``[target_update 2,000] eval/return 312.4 ...``.
+        """
         scalars = {key: float(value) for key, value in metrics.items()}
         if self._jsonl is not None:
-            record = {"step": step, "time": round(time.time() - self._start, 3)}
+            record: dict[str, Any] = {"step": step, "unit": unit, "time": round(time.time() - self._start, 3)}
             record.update({k: (v if math.isfinite(v) else None) for k, v in scalars.items()})
             self._jsonl.write(json.dumps(record) + "\n")
             self._jsonl.flush()
@@ -53,9 +63,16 @@ class Logger:
             for key, value in scalars.items():
                 self._tb.add_scalar(key, value, step)
             self._tb.flush()
-        if self._console and scalars:
-            text = "  ".join(f"{k} {v:.4g}" for k, v in sorted(scalars.items()))
-            tqdm.tqdm.write(f"[{step}] {text}")
+        shown = {k: v for k, v in scalars.items() if any(part in k for part in CONSOLE_KEYS)}
+        if self._console and shown:
+            text = "  ".join(f"{k} {v:.4g}" for k, v in sorted(shown.items()))
+            tqdm.tqdm.write(f"[{unit} {step:,}] {text}", file=sys.stderr)
+
+    def log_image(self, tag: str, image: Any, step: int) -> None:
+        """Record a uint8 ``(H, W, 3)`` picture at ``step`` (TensorBoard only; the other outputs take scalars)."""
+        if self._tb is not None:
+            self._tb.add_image(tag, image, step, dataformats="HWC")
+            self._tb.flush()
 
     def close(self) -> None:
         if self._jsonl is not None:

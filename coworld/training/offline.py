@@ -14,13 +14,14 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import tqdm
 
 from coworld import interrupt
 from coworld.config import to_dict
 from coworld.training.checkpoint import CHECKPOINT_NAME, load_checkpoint, rng_state, save_checkpoint, set_rng_state
 from coworld.training.evaluate import evaluate
 from coworld.training.logger import Logger, Rate
+from coworld.training.progress import progress_bar
+from coworld.viz.training import log_open_loop
 
 SamplerFactory = Callable[[int], Iterator[dict[str, np.ndarray]]]
 
@@ -111,7 +112,7 @@ class OfflineTrainer:
 
     def run(self, *, progress: bool = True) -> OfflineResult:
         s = self.schedule
-        bar = tqdm.tqdm(total=s.updates, initial=self.updates, unit="update", disable=not progress, dynamic_ncols=True)
+        bar = progress_bar(total=s.updates, initial=self.updates, desc=self.kind, unit="updates", enabled=progress)
         sampler = self.make_sampler(self.config.seed + self.updates)
         update_rate = Rate(self.updates)
         metrics: dict[str, float] = {}
@@ -123,7 +124,7 @@ class OfflineTrainer:
                 bar.update(1)
                 if self.updates % s.log_every == 0 or self.updates == s.updates:
                     metrics["perf/updates_per_s"] = update_rate(self.updates)  # this log window, evaluation included
-                    self.logger.log(metrics, self.updates)
+                    self.logger.log(metrics, self.updates, unit="update")
                 if self.updates % s.eval_every == 0 or self.updates == s.updates:
                     self.evaluate()
                     bar.set_postfix(eval_return=f"{self.last_eval:.1f}")
@@ -145,4 +146,5 @@ class OfflineTrainer:
         )
         self.last_eval = result.mean
         metrics = result.metrics()
-        self.logger.log(metrics, self.updates)
+        self.logger.log(metrics, self.updates, unit="update")
+        log_open_loop(self.logger, self.agent, self.make_sampler, self.updates, tag=f"openl/{self.task}", unit="update")

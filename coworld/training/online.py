@@ -9,7 +9,14 @@ dataset, and the step count continues from the dataset's row count, so no episod
 (the episodes that were running at the kill are lost, as promised by the dataset writer).
 
 Vector environments follow Gymnasium's default NEXT_STEP autoreset: after a step that ends an episode, the
-next ``step`` of that environment ignores its action and returns the first observation of a new episode.
+next ``step`` of that environment ignores its action and returns the first observation of a new episode. The
+acting side agrees with training on where episodes start: the policy is told ``is_first`` with the first frame
+of every episode (and only with it), the frame the replay stores as ``is_first``.
+
+Train ratio: after ``train.prefill`` random steps the agent makes ``train.pretrain_updates`` updates at once
+(DreamerV2's ``pretrain``), then one update every ``train.train_every`` environment steps
+(:meth:`OnlineTrainer.updates_due`). A resumed run keeps that ratio from its restored state on rather than
+catching up the updates lost with the killed process.
 """
 
 from __future__ import annotations
@@ -20,7 +27,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import tqdm
 
 from coworld import envs, interrupt
 from coworld.config import Config, to_dict
@@ -28,7 +34,9 @@ from coworld.data import DatasetWriter, open_dataset
 from coworld.training.checkpoint import CHECKPOINT_NAME, load_checkpoint, rng_state, save_checkpoint, set_rng_state
 from coworld.training.evaluate import evaluate
 from coworld.training.logger import Logger, Rate
+from coworld.training.progress import progress_bar
 from coworld.training.replay import Replay
+from coworld.viz.training import log_open_loop
 
 CHECKPOINT_KIND = "dreamerv2-online"
 
@@ -72,16 +80,21 @@ class OnlineTrainer:
         logger: Logger,
         checkpoint_extra: Callable[[], dict[str, Any]] | None = None,
         metric_prefix: str = "",
+        step_unit_prefix: str = "",
     ) -> None:
         self.agent, self.task, self.config = agent, task, config
         self.logdir = Path(logdir)
         self.writer, self.logger = writer, logger
         self.checkpoint_extra = checkpoint_extra
         self.prefix = metric_prefix
+        self.step_unit = f"{step_unit_prefix}env_step"
+        """What the step of this trainer's log records counts (``env_step``, ``source_env_step``)."""
         self.spec = envs.task_spec(task)
         self.replay = Replay(seed=config.seed)
         self.steps = writer.num_steps
         self.updates = 0
+        self._skipped_updates = 0
+        """Updates a resumed run skips rather than catching up (see :meth:`_skip_missed_updates`)."""
         self.last_eval: float | None = None
         self._updates_per_s: float | None = None
         self.last_eval_step = -1
@@ -134,12 +147,16 @@ class OnlineTrainer:
         stop_return: float | None = None,
         progress: bool = True,
         should_pause: Callable[[OnlineTrainer], bool] | None = None,
+        cut_episodes: bool = True,
     ) -> OnlineResult:
-        """Step, record and train until ``max_steps`` rows exist or evaluation reaches ``stop_return``.
+        """Step, record and train until ``max_steps`` steps are taken or evaluation reaches ``stop_return``.
 
-        ``should_pause`` is asked after every step; returning True ends this call without closing the
-        environments, and the next call continues the running episodes (CoWorld interleaves its source and
-        target phases this way).
+        ``cut_episodes`` (collection): stop at exactly ``max_steps`` rows, ending the running episodes there as
+        time limits. Without it (CoWorld's source pretraining) the call stops once ``max_steps`` is reached (at
+        most ``envs - 1`` steps later) and the running episodes continue in the next call, so the phase boundary
+        leaves no mark in the data. ``should_pause`` is asked after every step; returning True ends this call
+        without closing the environments, and the next call continues the running episodes (CoWorld interleaves
+        its source and target phases this way).
         """
         cfg = self.config.train
         if self._venv is None:
@@ -153,8 +170,9 @@ class OnlineTrainer:
             self._running_success: list[list[float]] = [[] for _ in range(n)]
             for i in range(n):
                 self._record(i, self._obs[i], np.zeros(self.spec.action_size, np.float32), 0.0, True, False, False)
-        bar = tqdm.tqdm(
-            total=max_steps, initial=min(self.steps, max_steps), unit="step", disable=not progress, dynamic_ncols=True
+        self._skip_missed_updates()
+        bar = progress_bar(
+            total=max_steps, initial=min(self.steps, max_steps), desc=self.task, unit="env steps", enabled=progress
         )
         reason = "max steps"
         if stop_return is not None and self.last_eval is not None and self.last_eval >= stop_return:
@@ -172,13 +190,17 @@ class OnlineTrainer:
                     action = np.clip(action + cfg.expl_noise * np.random.randn(*action.shape), -1, 1)
                 action = action.astype(np.float32)
                 obs, reward, terminated, truncated, info = self._venv.step(action)
-                keep = min(n, max_steps - self.steps)
-                final = self.steps + keep >= max_steps  # cut the running episodes at exactly max_steps rows
+                # With cut_episodes, the run ends at exactly max_steps rows and the running episodes end there
+                # (stored as time limits); without it, every env's step is kept and the episodes run on.
+                keep = min(n, max_steps - self.steps) if cut_episodes else n
+                final = cut_episodes and self.steps + keep >= max_steps
                 ended = False
                 for i in range(n):
-                    if self._is_last[i]:  # NEXT_STEP autoreset: this step started a new episode
+                    if self._is_last[i]:  # NEXT_STEP autoreset: this step only reset env i; obs[i] is o_0
                         self._record(i, obs[i], np.zeros_like(action[i]), 0.0, True, False, False)
+                        self._is_first[i] = True  # the next action starts a new latent from o_0, and only there
                         continue
+                    self._is_first[i] = False
                     if i >= keep:
                         continue
                     success = float(info["success"][i]) if "success" in info else None
@@ -189,14 +211,13 @@ class OnlineTrainer:
                     self.steps += 1
                     bar.update(1)
                 self._obs = obs
-                self._is_first = self._is_last.copy()
                 metrics.update(self._train_due())
                 if self.steps - last_log >= cfg.log_every and metrics:
                     # Rates over this log window, evaluation and checkpoint time included.
                     metrics[f"{self.prefix}perf/updates_per_s"] = update_rate(self.updates)
                     metrics[f"{self.prefix}perf/steps_per_s"] = step_rate(self.steps)
                     bar.set_postfix(self._bar_info(metrics[f"{self.prefix}perf/updates_per_s"]))
-                    self.logger.log(metrics, self.steps)
+                    self.logger.log(metrics, self.steps, unit=self.step_unit)
                     metrics, last_log = {}, self.steps
                 if ended:
                     if self.steps >= cfg.prefill and self.steps - self.last_eval_step >= cfg.eval_every:
@@ -214,7 +235,7 @@ class OnlineTrainer:
         finally:
             bar.close()
         if metrics:  # what the last log_every window had not written yet
-            self.logger.log(metrics, self.steps)
+            self.logger.log(metrics, self.steps, unit=self.step_unit)
         if reason != "paused":
             self.save()
         return OnlineResult(self.steps, self.updates, self.writer.num_episodes, self.last_eval, reason)
@@ -274,12 +295,34 @@ class OnlineTrainer:
             info["eval_return"] = f"{self.last_eval:.1f}"
         return info
 
+    def updates_due(self, steps: int) -> int:
+        """Updates an uninterrupted run has made after ``steps`` environment steps: none during the random
+        prefill; at the end of it ``train.pretrain_updates`` extra ones (DreamerV2's ``pretrain``) plus the
+        first regular one; then one every ``train.train_every`` steps."""
+        cfg = self.config.train
+        if steps < cfg.prefill:
+            return 0
+        return cfg.pretrain_updates + (steps - cfg.prefill) // cfg.train_every + 1
+
+    def _skip_missed_updates(self) -> None:
+        """Keep the train ratio from here on instead of catching up.
+
+        After a resume the agent comes from its last checkpoint, while the steps recorded after that checkpoint
+        stay in the replay; the updates made in between were lost with the process. Catching them up would be a
+        burst of updates with no environment step between them, which an uninterrupted run never makes. So the
+        missed updates are skipped: updates and steps interleave at ``train_every`` from the restored state on.
+        In an uninterrupted run (and between CoWorld's phases) nothing is missed and this changes nothing.
+        """
+        missed = self.updates_due(self.steps) - self._skipped_updates - self.updates
+        if missed > 0:
+            self._skipped_updates += missed
+
     def _train_due(self) -> dict[str, float]:
         cfg = self.config.train
         metrics: dict[str, float] = {}
         if self.steps < cfg.prefill or not self.replay.episodes:
             return metrics
-        while self.updates * cfg.train_every < self.steps - cfg.prefill + cfg.train_every:
+        while self.updates < self.updates_due(self.steps) - self._skipped_updates:
             batch = self.replay.sample(cfg.batch_size, cfg.seq_len)
             metrics = {f"{self.prefix}{k}": v for k, v in self.agent.train(batch).items()}
             self.updates += 1
@@ -297,4 +340,12 @@ class OnlineTrainer:
         self.last_eval, self.last_eval_step = result.mean, self.steps
         self.writer.update_metadata(last_eval_return=result.mean, last_eval_step=self.steps)
         metrics = result.metrics(self.prefix)
-        self.logger.log(metrics, self.steps)
+        self.logger.log(metrics, self.steps, unit=self.step_unit)
+        log_open_loop(
+            self.logger,
+            self.agent,
+            self.replay.episodes,
+            self.steps,
+            tag=f"{self.prefix}openl/{self.task}",
+            unit=self.step_unit,
+        )

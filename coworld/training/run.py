@@ -8,6 +8,7 @@ folder resumes it; a folder made by different settings is refused rather than si
 from __future__ import annotations
 
 import json
+import os
 import random
 from collections.abc import Mapping
 from pathlib import Path
@@ -16,7 +17,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from coworld.config import Config, from_dict, to_dict
+from coworld.config import Config, from_dict, to_dict, to_json
 from coworld.errors import ConfigError, CoworldError
 
 
@@ -43,38 +44,95 @@ def resolve_device(name: str | torch.device) -> torch.device:
     return device
 
 
-def prepare_run_dir(logdir: str | Path, config: Config, info: Mapping[str, Any]) -> bool:
-    """Create ``logdir`` with its config and run description, or check an existing one matches.
+def preset_warnings(preset: str, device: str) -> list[str]:
+    """A warning when the GPU-sized paper preset is about to run on a CPU."""
+    if preset != "paper" or resolve_device(device).type != "cpu":
+        return []
+    return [
+        "the paper preset is sized for a GPU: on this CPU a paper-size update takes seconds, so a run takes weeks;"
+        " pass --preset tiny to try things on a CPU (README, 'Presets')"
+    ]
+
+
+RUN_FILES = ("config.json", "run.json")
+"""What describes a run folder; ``config.json`` is written last, so its presence means the folder is set up."""
+
+
+def check_run_dir(logdir: str | Path, config: Config, info: Mapping[str, Any]) -> bool:
+    """Whether ``logdir`` can hold this run, without writing anything.
 
     Returns:
-        True when the folder already held this run (the caller resumes from its checkpoint).
+        True when the folder already holds this run (the caller resumes from its checkpoint), False when it is
+        absent or new (empty, or only a description left by a run killed while setting up).
+
+    Raises:
+        CoworldError: the folder holds another run (other settings or tasks), an unreadable description, or
+        files that no ``coworld train`` described (a checkpoint without its config.json, say).
     """
     logdir = Path(logdir)
     config_path, info_path = logdir / "config.json", logdir / "run.json"
     info = json.loads(json.dumps(dict(info)))  # normalise tuples and paths the way JSON reads them back
-    if config_path.exists():
-        try:
-            saved = from_dict(json.loads(config_path.read_text()))
-            saved_info = json.loads(info_path.read_text()) if info_path.exists() else {}
-        except (json.JSONDecodeError, ConfigError) as err:
-            raise CoworldError(f"{config_path} is unreadable ({err}); use a new --logdir") from None
-        if saved != config:
-            diff = _diff(to_dict(saved), to_dict(config))
+    if logdir.exists() and not logdir.is_dir():
+        raise CoworldError(f"{logdir} is a file, not a run folder; pass a new --logdir")
+    if not config_path.exists():
+        others = sorted(p.name for p in logdir.iterdir() if p.name not in RUN_FILES) if logdir.exists() else []
+        if others:
             raise CoworldError(
-                f"{logdir} holds a run with other settings ({diff}); rerun with the same settings to resume"
-                " or pass a new --logdir"
+                f"{logdir} holds {', '.join(others[:3])}{' ...' if len(others) > 3 else ''} but no config.json, so"
+                " it is not a coworld run folder (or it was damaged); nothing was changed: pass a new --logdir"
             )
-        for key, value in info.items():
-            if key in saved_info and saved_info[key] != value:
-                raise CoworldError(
-                    f"{logdir} holds a run with {key}={saved_info[key]!r}, not {value!r};"
-                    " rerun with the same settings to resume or pass a new --logdir"
-                )
+        return False
+    try:
+        saved = from_dict(json.loads(config_path.read_text()))
+        saved_info = json.loads(info_path.read_text()) if info_path.exists() else {}
+    except (json.JSONDecodeError, ConfigError, OSError) as err:
+        raise CoworldError(f"{config_path} is unreadable ({err}); nothing was changed: pass a new --logdir") from None
+    if saved != config:
+        diff = _diff(to_dict(saved), to_dict(config))
+        raise CoworldError(
+            f"{logdir} holds a run with other settings ({diff}); rerun with the same settings to resume"
+            " or pass a new --logdir"
+        )
+    for key, value in info.items():
+        if key in saved_info and saved_info[key] != value:
+            raise CoworldError(
+                f"{logdir} holds a run with {key}={saved_info[key]!r}, not {value!r};"
+                " rerun with the same settings to resume or pass a new --logdir"
+            )
+    return True
+
+
+def prepare_run_dir(logdir: str | Path, config: Config, info: Mapping[str, Any]) -> bool:
+    """Create ``logdir`` with its config and run description, or check an existing one matches.
+
+    Everything is checked (:func:`check_run_dir`) before anything is written; each file is written whole under
+    a temporary name and renamed, ``config.json`` last.
+
+    Returns:
+        True when the folder already held this run (the caller resumes from its checkpoint).
+    """
+    if check_run_dir(logdir, config, info):
         return True
+    logdir = Path(logdir)
     logdir.mkdir(parents=True, exist_ok=True)
-    config_path.write_text(json.dumps(to_dict(config), indent=2, sort_keys=True) + "\n")
-    info_path.write_text(json.dumps(info, indent=2, sort_keys=True) + "\n")
+    info = json.loads(json.dumps(dict(info)))
+    write_text_atomic(logdir / "run.json", json.dumps(info, indent=2, sort_keys=True) + "\n")
+    write_text_atomic(logdir / "config.json", to_json(config) + "\n")
     return False
+
+
+def write_text_atomic(path: Path, text: str) -> None:
+    """Write ``text`` to a temporary file beside ``path``, flush it to disk, and rename it over ``path``."""
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        with open(tmp, "w") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
 
 
 def load_run(logdir: str | Path) -> tuple[Config, dict[str, Any]]:

@@ -7,6 +7,7 @@ settings is refused; one made by the same settings is resumed from its checkpoin
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -44,6 +45,10 @@ class TrainJob:
     logdir: Path
     config: Config
     preset: str
+    resume: bool = False
+    """The run folder already holds this run: training continues from its checkpoint."""
+    warnings: tuple[str, ...] = ()
+    """Things worth telling the user before a long run starts (one line each)."""
 
     def info(self) -> dict[str, Any]:
         return {
@@ -67,18 +72,29 @@ def check_job(
     device: str | None,
     overrides: Sequence[str],
 ) -> TrainJob:
-    """Validate a training request; raises CoworldError with one line on any problem."""
+    """Validate a training request without writing anything; raises CoworldError with one line on any problem."""
+    from coworld.training.run import check_run_dir, preset_warnings
+
     if algo not in ALGOS:
         raise CoworldError(f"unknown algorithm {algo!r}; choose one of: {', '.join(ALGOS)}")
     target_spec = envs.task_spec(target)
+    warnings: list[str] = []
     if algo == "coworld":
         if source is None:
-            raise CoworldError("coworld needs an online source domain: pass --source, e.g. --source walker_walk")
+            paired = envs.paired_source(target) or "a task of the target's body (see `coworld tasks`)"
+            raise CoworldError(f"coworld needs an online source domain: pass --source, e.g. --source {paired}")
         source_spec = envs.task_spec(source)
         if source_spec.action_size != target_spec.action_size:
             raise CoworldError(
                 f"source {source} has {source_spec.action_size} action dimensions but target {target} has"
                 f" {target_spec.action_size}; pick a source with the target's action space (see `coworld tasks`)"
+            )
+        if source_spec.embodiment != target_spec.embodiment:
+            paired = envs.paired_source(target)
+            warnings.append(
+                f"source {source} ({source_spec.embodiment}) and target {target} ({target_spec.embodiment}) are"
+                " different bodies that only share an action size; the paper pairs tasks of one body"
+                + (f" ({paired} -> {target})" if paired else "")
             )
     extra = list(overrides)
     if seed is not None:
@@ -89,11 +105,18 @@ def check_job(
     path = Path(dataset) if dataset is not None else default_dataset_path(target, "medium-replay")
     check_dataset(path, target, target_spec.action_size)
     run_dir = Path(logdir) if logdir is not None else default_logdir(algo, source, target, config.seed)
-    return TrainJob(algo, source if algo == "coworld" else None, target, path, run_dir, config, preset)
+    job = TrainJob(algo, source if algo == "coworld" else None, target, path, run_dir, config, preset)
+    resume = check_run_dir(run_dir, config, job.info())
+    warnings += preset_warnings(preset, config.device)
+    return dataclasses.replace(job, resume=resume, warnings=tuple(warnings))
+
+
+IMAGE_SHAPE = (64, 64, 3)
+"""The frames every model here takes."""
 
 
 def check_dataset(path: Path, task: str, action_size: int) -> None:
-    """The dataset exists, opens, and was recorded in ``task`` with its action size."""
+    """The dataset exists, opens, was recorded in ``task`` with its action size, and has 64 x 64 RGB frames."""
     from coworld.data import open_dataset
 
     if not path.exists():
@@ -105,6 +128,12 @@ def check_dataset(path: Path, task: str, action_size: int) -> None:
             raise DatasetError(f"{path} was recorded in {data.task}, not the target {task}; pass a {task} dataset")
         if data.action_size != action_size:
             raise DatasetError(f"{path} has {data.action_size}-d actions but {task} takes {action_size}")
+        if tuple(data.image_shape) != IMAGE_SHAPE:
+            h, w, c = data.image_shape
+            raise DatasetError(
+                f"{path} has {h} x {w} x {c} frames but the models take 64 x 64 x 3 RGB frames; convert it to 64 x 64"
+                " (e.g. `coworld dataset import ... --resize 64`)"
+            )
 
 
 def run_job(job: TrainJob, *, progress: bool = True) -> dict[str, Any]:

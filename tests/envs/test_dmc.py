@@ -161,3 +161,49 @@ def test_render_quality_trades_fidelity_for_speed() -> None:
     standard_diff = np.abs(frames["standard"] - frames["full"]).mean()
     fast_diff = np.abs(frames["fast"] - frames["full"]).mean()
     assert 0 < standard_diff < 3 < fast_diff
+
+
+def floor_in_view(name: str, actions: np.ndarray, seed: int = 0) -> tuple[np.ndarray, float]:
+    """Per frame, the share of pixels that show the floor (MuJoCo's segmentation render of the task camera), and
+    how far the body travelled along the slope (m)."""
+    import mujoco
+
+    env = make(name, seed=seed)
+    env.reset()
+    physics = env.unwrapped.physics
+    model, data = physics.model.ptr, physics.data.ptr
+    floor = next(i for i in range(model.ngeom) if model.geom_type[i] == mujoco.mjtGeom.mjGEOM_PLANE)
+    renderer = mujoco.Renderer(model, 64, 64)
+    renderer.enable_segmentation_rendering()
+    start = physics.named.data.qpos["rootx"].item()
+
+    def share() -> float:
+        renderer.update_scene(data, camera=0)
+        ids, types = np.moveaxis(renderer.render(), -1, 0)
+        return float(((types == mujoco.mjtObj.mjOBJ_GEOM) & (ids == floor)).mean())
+
+    shares = [share()]
+    for action in actions:
+        env.step(action)
+        shares.append(share())
+    travel = physics.named.data.qpos["rootx"].item() - start
+    renderer.close()
+    env.close()
+    return np.array(shares), travel
+
+
+@pytest.mark.parametrize("name", ["walker_uphill", "cheetah_uphill"])
+def test_a_random_episode_on_the_uphill_shows_the_ground_in_every_frame(name: str) -> None:
+    shares, travel = floor_in_view(name, random_actions(500, seed=0))
+    assert travel < -2.0  # the body slid back past where dm_control's floor ends (x = -2)
+    assert shares.min() > 0.05, f"no ground in frame {int(shares.argmin())}"
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["walker_uphill", "walker_downhill", "cheetah_uphill", "cheetah_downhill"])
+@pytest.mark.parametrize("policy", ["random", "passive"])
+def test_slope_tasks_show_the_ground_whichever_way_the_body_goes(name: str, policy: str) -> None:
+    # passive: zero actions, the body slides down the slope (backwards uphill, forwards downhill)
+    actions = random_actions(500, seed=3) if policy == "random" else np.zeros((500, 6), np.float32)
+    shares, _ = floor_in_view(name, actions)
+    assert shares.min() > 0.05, f"no ground in frame {int(shares.argmin())}"

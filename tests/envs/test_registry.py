@@ -44,9 +44,23 @@ def test_spec_fields_are_consistent() -> None:
             task.name in {"walker_walk", "cheetah_run", "toy_reach"} or task.family == "metaworld"
         )
         if task.family == "dmc":
-            assert (task.episode_length * task.action_repeat, task.reference_return) == (1000, 1000.0)
-        if task.random_return is not None and task.reference_return is not None:
-            assert 0 <= task.random_return < task.reference_return
+            assert task.episode_length * task.action_repeat == 1000
+        assert task.reference_return is not None and task.reference_source
+        assert task.medium_return == pytest.approx(task.reference_return / 3)
+        if task.random_return is not None:
+            assert 0 <= task.random_return < task.medium_return  # a medium dataset is better than random
+
+
+def test_reference_returns_name_their_provenance() -> None:
+    # published DreamerV2 scores for the plain DMC tasks; the modified ones say they borrow them
+    assert (TASKS["walker_walk"].reference_return, TASKS["cheetah_run"].reference_return) == (964.9, 816.1)
+    for name in ("walker_downhill", "walker_uphill", "walker_nofoot"):
+        assert TASKS[name].reference_return == 964.9 and "walker_walk" in TASKS[name].reference_source
+    for name in ("cheetah_downhill", "cheetah_uphill", "cheetah_nopaw"):
+        assert TASKS[name].reference_return == 816.1 and "cheetah_run" in TASKS[name].reference_source
+    for task in TASKS.values():
+        if task.family == "metaworld":
+            assert "no published DreamerV2" in task.reference_source
 
 
 def test_unknown_task_lists_the_valid_ones() -> None:

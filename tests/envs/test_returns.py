@@ -25,3 +25,13 @@ def test_recorded_random_return(name: str) -> None:
         returns.append(total)
     env.close()
     assert np.mean(returns) == pytest.approx(spec.random_return, abs=0.05)
+
+
+def test_recorded_metaworld_expert_return() -> None:
+    """The Meta-World stand-in reference as recorded: the scripted expert, 10 episodes seeded 0-9."""
+    from coworld.envs.experts import expert_returns
+    from coworld.envs.registry import _METAWORLD_REFERENCE
+
+    returns, successes = expert_returns("mw_button_press", 10)
+    assert np.mean(returns) == pytest.approx(_METAWORLD_REFERENCE["mw_button_press"][0], abs=0.05)
+    assert all(successes)

@@ -38,3 +38,26 @@ def test_rate_counts_per_second_over_each_window(monkeypatch):
     rate = Rate(100)  # starts at count 100, t = 10
     assert rate(110) == pytest.approx(5.0)  # 10 more in 2 s
     assert rate(113) == pytest.approx(3.0)  # the window restarted at 110, t = 12
+
+
+def test_logger_labels_steps_with_what_they_count_and_keeps_the_console_short(tmp_path, capsys):
+    with Logger(tmp_path, outputs=("console", "jsonl")) as logger:
+        logger.log({"target/wm/loss": 2.0, "target/wm/kl": 0.5, "eval/return": 12.5}, step=2000, unit="target_update")
+    record = read_metrics(tmp_path)[0]
+    assert record["unit"] == "target_update" and record["target/wm/kl"] == 0.5  # the file keeps everything
+    line = capsys.readouterr().err.strip()
+    assert line.startswith("[target_update 2,000] ") and "eval/return 12.5" in line and "wm/loss 2" in line
+    assert "wm/kl" not in line
+
+
+def test_progress_off_a_terminal_writes_plain_lines_saying_what_they_count(capsys):
+    from coworld.training.progress import progress_bar
+
+    with progress_bar(total=40, desc="collect", unit="env steps") as bar:
+        for _ in range(40):
+            bar.update(1)
+    err = capsys.readouterr().err
+    assert "\r" not in err
+    lines = err.strip().splitlines()
+    assert lines and all(line.startswith("collect: ") and " env steps" in line for line in lines)
+    assert lines[-1].startswith("collect: 40/40 env steps (100%)")

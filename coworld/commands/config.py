@@ -1,0 +1,15 @@
+"""``coworld config``: print the resolved config of a preset and overrides, as a run would save it."""
+
+from __future__ import annotations
+
+import click
+
+from coworld.config import PRESETS, make_config, to_json
+
+
+@click.command("config")
+@click.option("--preset", type=click.Choice(sorted(PRESETS)), default="paper", show_default=True)
+@click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE", help="Config override (repeatable).")
+def config(preset: str, overrides: tuple[str, ...]) -> None:
+    """Print the resolved config as JSON: exactly the config.json a run with these settings saves."""
+    click.echo(to_json(make_config(preset, overrides)))

@@ -1,0 +1,212 @@
+"""The world models of a run folder, and the episodes to show them.
+
+A ``coworld`` run holds two DreamerV2 agents (its checkpoint's ``agent`` is the target agent, ``source`` the
+source agent); a ``dreamerv2`` run holds one. CURL runs have no world model.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any, Protocol, runtime_checkable
+
+import numpy as np
+
+from coworld import envs
+from coworld.config import Config
+from coworld.errors import CheckpointError, CoworldError
+
+WORLD_MODEL_ALGOS = ("coworld", "dreamerv2")
+_KEYS = ("image", "action", "reward", "is_first", "is_last", "is_terminal")
+
+
+@runtime_checkable
+class EpisodeStore(Protocol):
+    """What an open :class:`~coworld.data.reader.Dataset` offers: its episode count and one episode at a time."""
+
+    @property
+    def num_episodes(self) -> int: ...
+
+    def episode(self, i: int) -> dict[str, np.ndarray]: ...
+
+
+EpisodeSource = EpisodeStore | Sequence[Mapping[str, np.ndarray]]
+"""Episodes in the step convention: an open dataset, or a list of episodes (a replay's, fresh rollouts)."""
+
+
+def count_episodes(source: EpisodeSource) -> int:
+    return source.num_episodes if isinstance(source, EpisodeStore) else len(source)
+
+
+def get_episodes(source: EpisodeSource, indices: Sequence[int]) -> list[Mapping[str, np.ndarray]]:
+    """Episodes ``indices`` of ``source`` (an index repeated is read once)."""
+    read = {i: source.episode(i) if isinstance(source, EpisodeStore) else source[i] for i in set(indices)}
+    return [read[i] for i in indices]
+
+
+@dataclass
+class RunModels:
+    """What :func:`load_run_models` rebuilt.
+
+    Attributes:
+        agents: ``{"target": ..., "source": ...}`` DreamerV2 agents for a CoWorld run, ``{"dreamerv2": ...}`` for
+            an offline DreamerV2 run; the first one acts in the target task.
+        info: the run description (``run.json``: algo, source, target, dataset).
+    """
+
+    run_dir: Path
+    config: Config
+    info: dict[str, Any]
+    agents: dict[str, Any]
+
+    @property
+    def algo(self) -> str:
+        return str(self.info["algo"])
+
+    @property
+    def target_agent(self) -> Any:
+        return next(iter(self.agents.values()))
+
+    def world_models(self) -> dict[str, Any]:
+        return {name: agent.world_model for name, agent in self.agents.items()}
+
+
+def load_run_models(path: str | Path, device: str = "auto") -> RunModels:
+    """Rebuild the DreamerV2 agents of a run folder (or of its checkpoint file); problems raise one line."""
+    from coworld.agents.dreamerv2 import DreamerV2
+    from coworld.training.checkpoint import CHECKPOINT_NAME, load_checkpoint
+    from coworld.training.run import load_run, resolve_device
+
+    path = Path(path)
+    run_dir = path if path.is_dir() else path.parent
+    ckpt = path / CHECKPOINT_NAME if path.is_dir() else path
+    config, info = load_run(run_dir)
+    algo = info.get("algo")
+    if algo not in WORLD_MODEL_ALGOS:
+        raise CoworldError(
+            f"{run_dir} is a {algo} run: it has no world model to look inside; pass a coworld or dreamerv2 run"
+        )
+    torch_device = resolve_device(device)
+    state = load_checkpoint(ckpt, map_location=torch_device)
+    config = replace(config, device=str(torch_device))
+    action_size = envs.task_spec(info["target"]).action_size
+    parts = {"target": "agent", "source": "source"} if algo == "coworld" else {"dreamerv2": "agent"}
+    agents = {}
+    for name, key in parts.items():
+        agent = DreamerV2(config=config, action_size=action_size, device=torch_device)
+        try:
+            agent.load_state_dict(state[key])
+        except (KeyError, RuntimeError, ValueError) as err:
+            raise CheckpointError(f"{ckpt} does not fit a {algo} run of this config ({str(err)[:100]})") from None
+        agents[name] = agent
+    return RunModels(run_dir=run_dir, config=config, info=info, agents=agents)
+
+
+def run_dataset(info: Mapping[str, Any], override: str | Path | None = None) -> Path:
+    """The target dataset a run was trained on (``run.json``), or ``override``; it must exist."""
+    path = Path(override) if override is not None else Path(str(info.get("dataset")))
+    if not path.exists():
+        raise CoworldError(f"no dataset at {path}; pass the run's target dataset with --dataset")
+    return path
+
+
+def target_episodes(
+    run: RunModels, count: int, *, dataset: str | Path | None = None, online: bool = False, seed: int = 0
+) -> tuple[list[dict[str, np.ndarray]], str]:
+    """``count`` episodes of the run's target task and a phrase saying where they come from: evenly spaced
+    episodes of its dataset (or ``dataset``), or with ``online`` fresh episodes of its target policy."""
+    from coworld.data import open_dataset
+
+    task = run.info["target"]
+    if online:
+        episodes = rollout_episodes(run.target_agent, task, count, seed=seed)
+        return episodes, f"{count} fresh {task} episodes of the run's policy (seed {seed})"
+    path = run_dataset(run.info, dataset)
+    with open_dataset(path) as data:
+        if data.task != task:
+            raise CoworldError(f"{path} holds {data.task} episodes, not the run's target task {task}")
+        picked = evenly_spaced(data.num_episodes, count)
+        episodes = [data.episode(i) for i in picked]
+    return episodes, f"episodes {', '.join(map(str, picked))} of {path}"
+
+
+def prediction_windows(
+    episodes: Sequence[Mapping[str, np.ndarray]], *, start: int, length: int, context: int
+) -> dict[str, np.ndarray]:
+    """Steps ``start .. start + length - 1`` of every episode (fewer if the shortest episode ends first), checked
+    to leave at least one step to imagine after ``context`` observed ones."""
+    if context >= length:
+        raise CoworldError(f"--context {context} must be shorter than --length {length}")
+    shortest = min(len(ep["reward"]) for ep in episodes)
+    if shortest <= start + context:
+        raise CoworldError(
+            f"the episodes have {shortest} steps: too few for --start {start} plus --context {context}; lower them"
+        )
+    return episode_windows(episodes, min(length, shortest - start), [start] * len(episodes))
+
+
+def evenly_spaced(total: int, n: int) -> list[int]:
+    """``min(n, total)`` distinct indices spread evenly over ``range(total)``, first and last included."""
+    if total <= 0 or n <= 0:
+        return []
+    return sorted({int(round(i)) for i in np.linspace(0, total - 1, min(n, total))})
+
+
+def episode_windows(
+    episodes: Sequence[Mapping[str, np.ndarray]], length: int, starts: Sequence[int] | None = None
+) -> dict[str, np.ndarray]:
+    """One window of ``length`` steps from each episode (step convention), stacked into a batch ``(B, L, ...)``.
+
+    ``starts`` (default 0) is clipped so each window fits inside its episode; ``length`` is cut to the shortest
+    episode. Each window after the first step has ``is_first`` False, so a window that starts mid-episode is
+    observed from a zero state (as training windows are).
+    """
+    length = min([length, *(len(ep["reward"]) for ep in episodes)])
+    starts = [0] * len(episodes) if starts is None else list(starts)
+    windows = []
+    for episode, start in zip(episodes, starts, strict=True):
+        start = int(np.clip(start, 0, len(episode["reward"]) - length))
+        windows.append({key: np.asarray(episode[key][start : start + length]) for key in _KEYS})
+    return {key: np.stack([w[key] for w in windows]) for key in _KEYS}
+
+
+def rollout_episodes(agent: Any, task: str, episodes: int, seed: int = 0, mode: str = "eval") -> list[dict]:
+    """Fresh episodes in ``task`` in the step convention: ``agent``'s policy in ``mode`` ('eval' or 'train'), or
+    uniform random actions for ``mode='random'`` (``agent`` may then be None)."""
+    spec = envs.task_spec(task)
+    rng = np.random.default_rng(seed)
+    env = envs.make(task, seed=seed)
+    out = []
+    try:
+        for i in range(episodes):
+            obs, _ = env.reset(seed=seed + i)
+            steps = [_step(obs, np.zeros(spec.action_size, np.float32), 0.0, first=True)]
+            state, done = None, False
+            while not done:
+                if mode == "random":
+                    action = rng.uniform(-1, 1, spec.action_size)
+                else:
+                    batch_action, state = agent.policy(obs[None], state, mode=mode)
+                    action = batch_action[0]
+                action = np.asarray(action, np.float32)
+                obs, reward, terminated, truncated, _ = env.step(action)
+                done = bool(terminated or truncated)
+                steps.append(_step(obs, action, float(reward), last=done, terminal=bool(terminated)))
+            out.append({key: np.stack([s[key] for s in steps]) for key in _KEYS})
+    finally:
+        env.close()
+    return out
+
+
+def _step(
+    obs: np.ndarray, action: np.ndarray, reward: float, first: bool = False, last: bool = False, terminal: bool = False
+) -> dict[str, Any]:
+    return {
+        "image": obs,
+        "action": action,
+        "reward": np.float32(reward),
+        "is_first": first,
+        "is_last": last,
+        "is_terminal": terminal,
+    }

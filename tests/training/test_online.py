@@ -1,0 +1,135 @@
+"""The online loop: where the acting side starts episodes, the train ratio across resumes and phase boundaries."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from coworld import envs
+from coworld.config import make_config
+from coworld.data import DatasetWriter, open_dataset
+from coworld.data.collect import dataset_fields
+from coworld.training.logger import Logger
+from coworld.training.online import OnlineTrainer
+
+NEVER = str(10**9)
+
+
+class ProbeAgent:
+    """Acts uniformly at random and records what the loop tells it; counts its updates."""
+
+    def __init__(self, action_size: int, crash_after: int | None = None) -> None:
+        self.action_size = action_size
+        self.calls: list[tuple[np.ndarray, np.ndarray]] = []  # (obs, is_first) per policy call
+        self.trained = 0
+        self.crash_after = crash_after
+        self.rng = np.random.default_rng(0)
+
+    def policy(self, obs: np.ndarray, state: Any = None, mode: str = "train", is_first: Any = None):
+        self.calls.append((obs.copy(), np.asarray(is_first, bool).copy()))
+        return self.rng.uniform(-1, 1, (len(obs), self.action_size)).astype(np.float32), state
+
+    def train(self, batch: dict[str, np.ndarray]) -> dict[str, float]:
+        if self.crash_after is not None and self.trained >= self.crash_after:
+            raise RuntimeError("simulated crash")
+        self.trained += 1
+        return {"probe/loss": 0.0}
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"trained": self.trained}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.trained = int(state["trained"])
+
+
+def trainer(tmp_path: Path, agent: ProbeAgent, overrides: list[str], writer: DatasetWriter, logger: Logger):
+    config = make_config("tiny", ["device=cpu", f"train.eval_every={NEVER}", *overrides])
+    return OnlineTrainer(agent=agent, task="toy_reach", config=config, logdir=tmp_path, writer=writer, logger=logger)
+
+
+def open_writer(path: Path, resume: bool = False) -> DatasetWriter:
+    fields = dataset_fields("toy_reach")
+    return DatasetWriter(
+        path, task="toy_reach", quality="medium-replay", collector={}, action_size=2, resume=resume, **fields
+    )
+
+
+def test_the_policy_starts_a_latent_with_the_first_frame_of_every_episode_and_only_there(tmp_path: Path) -> None:
+    agent = ProbeAgent(envs.task_spec("toy_reach").action_size)
+    overrides = ["train.envs=2", f"train.prefill={NEVER}", f"train.checkpoint_every={NEVER}"]
+    with open_writer(tmp_path / "d.h5") as writer, Logger(tmp_path, outputs=()) as logger:
+        loop = trainer(tmp_path, agent, overrides, writer, logger)
+        try:
+            loop.run(max_steps=260, progress=False)  # 2 envs x 130 steps: 2 whole 50-step episodes each, and more
+        finally:
+            loop.close()
+    with open_dataset(tmp_path / "d.h5") as data:
+        firsts = [data.episode(i)["image"][0].tobytes() for i in range(data.num_episodes)]
+        lasts = {data.episode(i)["image"][-1].tobytes() for i in range(data.num_episodes)}
+        assert data.num_episodes >= 4
+    flagged = [obs[i].tobytes() for obs, first in agent.calls for i in np.flatnonzero(first)]
+    unflagged = [obs[i].tobytes() for obs, first in agent.calls for i in np.flatnonzero(~first)]
+    assert set(firsts) <= set(flagged)  # every stored episode began a new latent at its first frame
+    assert len(flagged) == len(set(flagged))  # once each
+    assert not set(flagged) & lasts  # never with an episode's final frame
+    assert not set(unflagged) & set(firsts)  # and no first frame went by without the flag
+
+
+def test_updates_due_follow_dreamerv2s_prefill_pretrain_and_train_ratio(tmp_path: Path) -> None:
+    overrides = ["train.prefill=100", "train.pretrain_updates=7", "train.train_every=5"]
+    with open_writer(tmp_path / "d.h5") as writer, Logger(tmp_path, outputs=()) as logger:
+        loop = trainer(tmp_path, ProbeAgent(2), overrides, writer, logger)
+        due = [loop.updates_due(steps) for steps in (0, 99, 100, 104, 105, 200)]
+    assert due == [0, 0, 8, 8, 9, 28]  # none in the prefill; 7 pretraining + 1 at its end; then 1 per 5 steps
+
+
+def test_a_resumed_run_keeps_the_train_ratio_instead_of_bursting(tmp_path: Path) -> None:
+    overrides = ["train.prefill=50", "train.train_every=5", "train.pretrain_updates=3", "train.checkpoint_every=100"]
+    agent = ProbeAgent(2, crash_after=45)  # crashes well after its last checkpoint
+    with open_writer(tmp_path / "d.h5") as writer, Logger(tmp_path, outputs=()) as logger:
+        loop = trainer(tmp_path, agent, overrides, writer, logger)
+        with pytest.raises(RuntimeError, match="simulated crash"):
+            loop.run(max_steps=400, progress=False)
+        loop.close()
+        crashed_at = loop.steps
+    # Start again as `coworld collect --resume` does: agent and counters from the checkpoint, steps from the data.
+    agent = ProbeAgent(2)
+    updates_per_step: list[int] = []
+    with open_writer(tmp_path / "d.h5", resume=True) as writer, Logger(tmp_path, outputs=()) as logger:
+        loop = trainer(tmp_path, agent, overrides, writer, logger)
+        loop.restore()
+        resumed = (loop.steps, loop.updates)
+        assert loop.updates < loop.updates_due(loop.steps)  # the updates since the checkpoint were lost
+        original = loop._train_due
+
+        def counting() -> dict[str, float]:
+            before = loop.updates
+            metrics = original()
+            updates_per_step.append(loop.updates - before)
+            return metrics
+
+        loop._train_due = counting  # type: ignore[method-assign]
+        try:
+            loop.run(max_steps=400, progress=False)
+        finally:
+            loop.close()
+    assert resumed[0] <= crashed_at and max(updates_per_step) == 1  # no catch-up burst
+    # ... and the ratio holds from the restored state on: one update per train_every steps.
+    assert loop.updates - resumed[1] == pytest.approx((400 - resumed[0]) / 5, abs=1)
+
+
+def test_pretraining_without_cut_leaves_no_mark_in_the_episodes(tmp_path: Path) -> None:
+    overrides = [f"train.prefill={NEVER}", f"train.checkpoint_every={NEVER}"]
+    agent = ProbeAgent(2)
+    with open_writer(tmp_path / "d.h5") as writer, Logger(tmp_path, outputs=()) as logger:
+        loop = trainer(tmp_path, agent, overrides, writer, logger)
+        try:
+            loop.run(max_steps=70, progress=False, cut_episodes=False)  # a phase boundary inside episode 2
+            loop.run(max_steps=200, progress=False)
+        finally:
+            loop.close()
+    with open_dataset(tmp_path / "d.h5") as data:
+        assert list(data.lengths) == [50, 50, 50, 50]  # no episode cut at 70, no transition dropped
