@@ -39,6 +39,18 @@ main(sys.argv[2:])
 """
 
 
+def last_word(stderr: str, prefix: str) -> str:
+    """The one line of ``stderr`` that starts with ``prefix`` (``error: ``, ``stopped by ``), checked to be the last
+    line there, with nothing amiss before it (no traceback, no ignored exception, no warning); progress and metric
+    lines before it are fine."""
+    lines = [line for line in stderr.splitlines() if line.strip() and not PROGRESS_LINE.search(line)]
+    found = [line for line in lines if line.startswith(prefix)]
+    assert len(found) == 1 and lines[-1] == found[0], stderr[-3000:]
+    for amiss in ("Traceback", "Exception ignored", "Error", "WARN", "warn("):
+        assert amiss not in stderr, stderr[-3000:]
+    return found[0]
+
+
 def start_cli(*args: str, **popen: Any) -> subprocess.Popen[str]:
     """``coworld ARGS`` in its own session (so a signal can go to its whole process group, as a terminal's does)."""
     return subprocess.Popen(
@@ -110,10 +122,9 @@ class Stopped:
     stdout: str
     stderr: str
 
-    @property
-    def stderr_lines(self) -> list[str]:
-        """The lines on stderr, but for the plain progress lines written when stderr is not a terminal."""
-        return [line for line in self.stderr.splitlines() if line.strip() and not PROGRESS_LINE.search(line)]
+    def message(self) -> str:
+        """The one-line stop message (see :func:`last_word`)."""
+        return last_word(self.stderr, "stopped by ")
 
 
 def stop(proc: subprocess.Popen[str], sig: int, *, group: bool = False, timeout: float = 120.0) -> Stopped:

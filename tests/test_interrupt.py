@@ -51,8 +51,7 @@ def _line(stopped, signum: int) -> str:
     """The one line a stopped command printed, after checking its exit code and how fast it stopped."""
     assert stopped.returncode == 128 + signum, stopped.stderr[-3000:]
     assert stopped.seconds < STOP_SECONDS, stopped.seconds
-    assert len(stopped.stderr_lines) == 1, stopped.stderr[-3000:]
-    return stopped.stderr_lines[0]
+    return stopped.message()
 
 
 def _send(signum: int) -> None:

@@ -32,19 +32,17 @@ TRAIN_DV2 = (
 ).split()
 
 
-def _one_error_line(result) -> str:
-    """The single line on stderr of a command that failed with exit code 2 and no traceback."""
-    lines = [line for line in result.stderr.splitlines() if line.strip()]
+def _one_error_line(processes: ModuleType, result) -> str:
+    """The single error line of a command that failed with exit code 2 and no traceback."""
     assert result.returncode == 2, result.stderr[-3000:]
-    assert len(lines) == 1 and lines[0].startswith("error: "), result.stderr[-3000:]
-    return lines[0]
+    return processes.last_word(result.stderr, "error: ")
 
 
 def test_a_full_disk_stops_collect_and_resume_continues(small_disk, processes: ModuleType, helpers: ModuleType) -> None:
     disk = small_disk(3 * MiB)
     out = disk.path / "a.h5"
     args = [*COLLECT, "--episodes", "20", "--compression", "none", "--out", str(out)]
-    line = _one_error_line(processes.run_cli(*args, **disk.popen()))
+    line = _one_error_line(processes, processes.run_cli(*args, **disk.popen()))
     assert line.startswith(f"error: cannot write {out}: ") and "--resume" in line
     kept = int(re.search(r"(\d+) committed episodes? (is|are) intact", line).group(1))
     with open_dataset(out) as data:
@@ -71,7 +69,7 @@ def test_a_full_disk_stops_the_dreamerv2_collector_and_resume_continues(
     (tmp_path / "agent").mkdir()
     (disk.path / "b.run").symlink_to(tmp_path / "agent")  # the agent's run folder on a disk with room: the data fails
     args = [*DV2_COLLECT, "--max-steps", "400", "--compression", "none", "--out", str(out)]
-    line = _one_error_line(processes.run_cli(*args, **disk.popen()))
+    line = _one_error_line(processes, processes.run_cli(*args, **disk.popen()))
     assert line.startswith(f"error: cannot write {out}: ") and "intact" in line and "--resume" in line
     with open_dataset(out) as data:
         assert not data.complete and 0 < data.num_steps < 400
@@ -98,7 +96,7 @@ def test_a_full_disk_stops_merge_and_leaves_out_as_it_was(
     out = helpers.write_dataset(disk.path / "m.h5", episodes[:2], compression="none")
     before = helpers.folder_state(disk.path)
     args = ["dataset", "merge", str(a), str(b), "--out", str(out), "--force", "--compression", "none"]
-    line = _one_error_line(processes.run_cli(*args, **disk.popen()))
+    line = _one_error_line(processes, processes.run_cli(*args, **disk.popen()))
     assert line.startswith(f"error: cannot write the merge next to {out}: ") and f"{out} is as it was" in line
     assert helpers.folder_state(disk.path) == before  # no half-made merge, no lock file left behind
 
@@ -129,7 +127,7 @@ def test_a_full_disk_during_training_keeps_the_last_checkpoint_and_the_rerun_fin
     disk = small_disk(8 * MiB, file_size=4 * MiB)  # room for one tiny DreamerV2 checkpoint (5 MB), not for two
     run = disk.path / "run"
     args = [*TRAIN_DV2, "--dataset", str(dataset), "--logdir", str(run)]
-    line = _one_error_line(processes.run_cli(*args, **disk.popen()))
+    line = _one_error_line(processes, processes.run_cli(*args, **disk.popen()))
     assert line.startswith(f"error: cannot save checkpoint {run / 'checkpoint.pt'}: ")
     assert not (run / ".checkpoint.pt.tmp").exists()
     if disk.mounted:  # the first iteration's checkpoint fitted, its replacement did not
@@ -168,7 +166,7 @@ def test_read_only_outputs_are_refused_in_one_line_and_left_untouched(
         "eval --video": [*EVAL, str(untrained_run), "--video", str(ro / "v.mp4")],
     }
     for name, args in commands.items():
-        line = _one_error_line(processes.run_cli(*args))
+        line = _one_error_line(processes, processes.run_cli(*args))
         assert line.startswith(f"error: cannot write to {ro}") and "choose another --" in line, (name, line)
         assert helpers.folder_state(ro) == before, name
 
@@ -182,7 +180,7 @@ def test_eval_prints_its_results_when_it_cannot_write_them(
     result = processes.run_cli(
         "eval", "--ckpt", str(untrained_run), "--episodes", "2", "--out", str(out), "--device", "cpu", **disk.popen()
     )
-    line = _one_error_line(result)
+    line = _one_error_line(processes, result)
     assert line.startswith(f"error: cannot write the results to {out}: ") and line.endswith("printed above instead")
     summary, record = result.stdout.splitlines()
     assert summary.startswith("toy_reach_shifted: return ") and "over 2 episodes" in summary
@@ -204,6 +202,6 @@ def test_a_folder_as_dataset_file_is_refused_and_kept(processes: ModuleType, hel
         [*DV2_COLLECT, "--out", str(folder), "--force"],
         ["dataset", "merge", str(a), str(tmp_path / "data" / "inside.h5"), "--out", str(folder), "--force"],
     ):
-        line = _one_error_line(processes.run_cli(*args))
+        line = _one_error_line(processes, processes.run_cli(*args))
         assert f"{folder} is a folder" in line, line
         assert helpers.folder_state(tmp_path) == before
