@@ -60,7 +60,6 @@ def test_a_full_disk_stops_collect_and_resume_continues(small_disk, processes: M
     assert verify_dataset(out) == []
 
 
-@pytest.mark.slow  # 35 s: DreamerV2 learns for 400 steps
 def test_a_full_disk_stops_the_dreamerv2_collector_and_resume_continues(
     small_disk, processes: ModuleType, helpers: ModuleType, tmp_path: Path
 ) -> None:
