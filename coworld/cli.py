@@ -1,8 +1,9 @@
 """The ``coworld`` command line: a thin click group.
 
 Each command lives in ``coworld/commands/<name>.py`` and is imported only when it runs, so ``--help`` and
-``coworld tasks`` stay fast (no torch import). Any :class:`~coworld.errors.CoworldError` becomes one line on
-stderr and exit code 2.
+``coworld tasks`` stay fast (no torch import). Any :class:`~coworld.errors.CoworldError`, and an output location
+the system refuses to write (full, read-only, no permission), becomes one line on stderr and exit code 2. SIGINT and
+SIGTERM stop a command with one line and exit code 130 / 143 (:mod:`coworld.interrupt`).
 """
 
 from __future__ import annotations
@@ -13,8 +14,9 @@ from typing import Any
 
 import click
 
-from coworld import __version__
+from coworld import __version__, interrupt
 from coworld.errors import CoworldError
+from coworld.storage import WRITE_ERRNOS, os_error_text
 
 # command name -> "module:attribute"
 COMMANDS = {
@@ -50,6 +52,22 @@ class _LazyGroup(click.Group):
         except CoworldError as err:
             click.echo(f"error: {err}", err=True)
             sys.exit(2)
+        except OSError as err:
+            if err.errno not in WRITE_ERRNOS:
+                raise
+            click.echo(f"error: {os_error_text(err)}", err=True)
+            sys.exit(2)
+
+    def main(self, *args: Any, **kwargs: Any) -> Any:
+        with interrupt.handling_signals():  # from the start: importing a command can take seconds
+            try:
+                return super().main(*args, **kwargs)
+            except (interrupt.Interrupted, Exception) as err:
+                stop = interrupt.stop_for(err)
+                if stop is None:
+                    raise
+                click.echo(f"\n{stop}" if sys.stderr.isatty() else str(stop), err=True)  # after the ^C
+                sys.exit(stop.exit_code)
 
 
 @click.group(cls=_LazyGroup, context_settings={"help_option_names": ["-h", "--help"]})

@@ -29,3 +29,20 @@ class DatasetError(CoworldError):
 
 class CheckpointError(CoworldError):
     """A checkpoint that is missing, corrupt or made by an incompatible run."""
+
+
+class StorageError(CoworldError):
+    """A write the system refused (disk full, read-only location, no permission); what was committed before is
+    intact. ``reason`` is the system's word for it (``No space left on device``)."""
+
+    def __init__(self, message: str, reason: str = "") -> None:
+        super().__init__(message)
+        self.reason = reason
+
+    @property
+    def disk_full(self) -> bool:
+        """The disk (or the user's quota, or the file size limit) has no room: freeing space lets a rerun continue."""
+        import errno
+        import os
+
+        return self.reason in {os.strerror(e) for e in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)}

@@ -32,6 +32,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from coworld import interrupt
 from coworld.agents.dreamerv2 import DreamerV2
 from coworld.config import Config, to_dict
 from coworld.data import DatasetWriter, open_dataset
@@ -271,6 +272,7 @@ def train_coworld(job: Any, *, device: torch.device, resumed: bool, progress: bo
                 if progress_state["phase"] == "target":
                     rate = Rate(agent.target.updates)
                     for i in range(cfg.target_updates):
+                        interrupt.check()
                         metrics = agent.train_target(next(agent.target_batches))
                         bar.update(1)
                         if (i + 1) % log_every == 0 or i + 1 == cfg.target_updates:

@@ -9,7 +9,9 @@ from typing import Any
 
 import click
 
+from coworld import interrupt
 from coworld.data import CODECS, QUALITIES, merge_datasets, open_dataset, verify_dataset
+from coworld.text import count
 
 
 @click.group()
@@ -93,13 +95,24 @@ def verify(path: Path) -> None:
     type=click.Choice(QUALITIES),
     help="Quality of the merge (default: the inputs' shared one, or medium-expert for medium(-replay) + expert).",
 )
-@click.option("--force", is_flag=True, help="Overwrite --out if it exists.")
+@click.option("--force", is_flag=True, help="Replace --out if it exists (once the merge is whole).")
 @click.option("--compression", type=click.Choice(CODECS), default="gzip", show_default=True, help="Frame codec.")
+@interrupt.at_safe_points
 def merge(inputs: tuple[Path, ...], out: Path, quality: str | None, force: bool, compression: str) -> None:
-    """Merge datasets of one task, in order, into a new dataset (e.g. medium-replay + expert = medium-expert)."""
-    merge_datasets(list(inputs), out, quality=quality, force=force, compression=compression, progress=True)
+    """Merge datasets of one task, in order, into a new dataset (e.g. medium-replay + expert = medium-expert).
+
+    The merge is built next to --out and renamed into place once whole: stopped at any point, --out is as it was.
+    """
+    existed = out.exists()
+    untouched = f"{out} is as it was" if existed else f"nothing was written to {out}"
+    with interrupt.explain(lambda: f"{untouched}; run the merge again"):
+        merge_datasets(
+            list(inputs), out, quality=quality, force=force, compression=compression, progress=sys.stderr.isatty()
+        )
     with open_dataset(out) as data:
-        click.echo(f"wrote {out}: {data.quality}, {data.num_episodes:,} episodes, {data.num_steps:,} steps")
+        click.echo(
+            f"wrote {out}: {data.quality}, {count(data.num_episodes, 'episode')}, {count(data.num_steps, 'step')}"
+        )
 
 
 @dataset.command("import")

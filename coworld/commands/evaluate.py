@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import click
 
+from coworld import interrupt
 from coworld.commands.options import threads_option
 
 
@@ -26,40 +28,71 @@ from coworld.commands.options import threads_option
 @click.option("--task", default=None, help="Evaluate in another task than the run's target (same action size).")
 @threads_option
 @click.option("--device", type=click.Choice(["auto", "cpu", "cuda"]), default="auto", show_default=True)
+@interrupt.at_safe_points
 def evaluate(ckpt, episodes, workers, seed, video, video_episodes, out, task, device) -> None:
-    """Mean ± std return (and success rate on Meta-World) of a trained policy, plus the value check."""
+    """Mean ± std return (and success rate on Meta-World) of a trained policy, plus the value check.
+
+    The results are printed before they are written: a location that cannot be written loses nothing.
+    """
+    from coworld.envs.vector import sensible_workers
     from coworld.errors import CoworldError
+    from coworld.storage import check_writable, write_text_atomically
     from coworld.training.evaluate import evaluate as run_eval
     from coworld.training.evaluate import load_trained_agent, write_video
 
-    agent, info, config = load_trained_agent(Path(ckpt), device=device)
-    if task is not None:
-        from coworld.envs import task_spec
-
-        trained, asked = task_spec(info["target"]), task_spec(task)
-        if asked.action_size != trained.action_size:
-            raise CoworldError(
-                f"{task} takes {asked.action_size}-d actions but this agent was trained on {info['target']}"
-                f" ({trained.action_size}-d); evaluate it on a task of the same action size"
-            )
-    task = task or info["target"]
-    discount = config.actor_critic.discount if hasattr(agent, "value") else None
-    result, frames = run_eval(
-        agent,
-        task,
-        episodes=episodes,
-        workers=workers,
-        seed=seed,
-        discount=discount,
-        video_episodes=video_episodes if video else 0,
-        progress=True,
-    )
-    result.extra.update(algo=info["algo"], checkpoint=str(ckpt), seed=seed)
+    workers, note = sensible_workers(workers, episodes)
+    if note:
+        click.echo(f"note: {note}", err=True)
     run_dir = Path(ckpt) if Path(ckpt).is_dir() else Path(ckpt).parent
     out_path = Path(out) if out else run_dir / "eval.json"
-    result.to_json(out_path)
-    click.echo(result.summary())
+    check_writable(out_path.parent, "--out")
     if video:
-        write_video(video, frames)
+        check_writable(Path(video).parent, "--video")
+    with interrupt.explain(lambda: "no results were written (an evaluation does not resume); rerun the same command"):
+        agent, info, config = load_trained_agent(Path(ckpt), device=device)
+        if task is not None:
+            from coworld.envs import task_spec
+
+            trained, asked = task_spec(info["target"]), task_spec(task)
+            if asked.action_size != trained.action_size:
+                raise CoworldError(
+                    f"{task} takes {asked.action_size}-d actions but this agent was trained on {info['target']}"
+                    f" ({trained.action_size}-d); evaluate it on a task of the same action size"
+                )
+        task = task or info["target"]
+        discount = config.actor_critic.discount if hasattr(agent, "value") else None
+        result, frames = run_eval(
+            agent,
+            task,
+            episodes=episodes,
+            workers=workers,
+            seed=seed,
+            discount=discount,
+            video_episodes=video_episodes if video else 0,
+            progress=True,
+        )
+    result.extra.update(algo=info["algo"], checkpoint=str(ckpt), seed=seed)
+    click.echo(result.summary())
+    try:
+        write_text_atomically(out_path, json.dumps(result.to_dict(), indent=2) + "\n")
+    except OSError as err:
+        click.echo(json.dumps(result.to_dict()))  # the record the file would have held
+        raise _refused(err, f"the results to {out_path}", "printed above instead") from None
+    if video:
+        try:
+            write_video(video, frames)
+        except OSError as err:
+            raise _refused(err, f"the video to {video}", f"the results are in {out_path}") from None
         click.echo(f"video: {video}")
     click.echo(f"results: {out_path}")
+
+
+def _refused(err: OSError, what: str, instead: str) -> Exception:
+    """The one-line error of a write the system refused (others are re-raised: they are bugs)."""
+    from coworld.errors import StorageError
+    from coworld.storage import WRITE_ERRNOS, failure_reason
+
+    if err.errno not in WRITE_ERRNOS:
+        return err
+    reason = failure_reason(err)
+    return StorageError(f"cannot write {what}: {reason}; {instead}", reason)

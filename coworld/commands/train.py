@@ -2,10 +2,16 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import click
 
+from coworld import interrupt
 from coworld.commands.options import threads_option
+from coworld.errors import StorageError
 from coworld.training.train import ALGOS, MODEL_FREE
+
+RESUME = "rerun the same command to resume"
 
 
 @click.command()
@@ -36,11 +42,14 @@ from coworld.training.train import ALGOS, MODEL_FREE
 )
 @threads_option
 @click.option("--progress/--no-progress", default=True, help="Progress bars.")
+@interrupt.at_safe_points
 def train(target, source, dataset, algo, preset, logdir, seed, device, overrides, progress) -> None:
     """Train on a fixed target dataset (CoWorld also learns online in --source).
 
-    Rerunning the same command on the same --logdir resumes from the last checkpoint.
+    Rerunning the same command on the same --logdir resumes from the last checkpoint (also after Ctrl-C, SIGTERM,
+    a kill or a full disk).
     """
+    from coworld.storage import check_writable
     from coworld.training.train import check_job, run_job
 
     if source is not None and algo != "coworld":
@@ -57,12 +66,34 @@ def train(target, source, dataset, algo, preset, logdir, seed, device, overrides
         device=device,
         overrides=overrides,
     )
+    check_writable(job.logdir, "--logdir")
     for warning in job.warnings:
         click.echo(f"warning: {warning}", err=True)
     kind = "offline on the dataset alone" if algo in MODEL_FREE or algo == "dreamerv2" else f"with source {source}"
     click.echo(f"train {algo} on {job.dataset} ({target}, {kind}); run folder {job.logdir}")
     if job.resume and (job.logdir / "checkpoint.pt").exists():
         click.echo(f"resuming from {job.logdir / 'checkpoint.pt'}")
-    summary = run_job(job, progress=progress)
+    try:
+        with interrupt.explain(lambda: f"{_kept(job.logdir)}; {RESUME}"):
+            summary = run_job(job, progress=progress)
+    except StorageError as err:
+        fix = "free space" if err.disk_full else "make it writable"
+        raise StorageError(f"{err}; {fix}, then {RESUME}", err.reason) from None
     last = summary.get("last_eval_return")
     click.echo(f"done: {job.logdir}" + (f" (last evaluation return {last:.1f})" if last is not None else ""))
+
+
+def _kept(logdir: Path) -> str:
+    """What a stopped run folder holds: how far its last checkpoint got."""
+    import torch
+
+    path = logdir / "checkpoint.pt"
+    if not path.exists():
+        if (logdir / "source" / "checkpoint.pt").exists():  # CoWorld, pretraining its source agent
+            return f"{logdir} keeps the source agent's pretraining checkpoint and experience"
+        return f"{logdir} holds no checkpoint yet"
+    state = torch.load(path, map_location="cpu", weights_only=True, mmap=True)
+    if "progress" in state:  # CoWorld
+        progress = state["progress"]
+        return f"{logdir} keeps its checkpoint from iteration {progress['iteration']}, {progress['phase']} phase"
+    return f"{logdir} keeps its checkpoint at update {int(state['updates']):,}"

@@ -18,9 +18,11 @@ import h5py
 import numpy as np
 from tqdm import tqdm
 
+from coworld import interrupt
 from coworld.data.reader import open_dataset
 from coworld.data.writer import DatasetWriter
 from coworld.errors import ConfigError, DatasetError
+from coworld.text import count
 
 # policy(obs (W, H, W, C) uint8, is_first (W,) bool) -> (actions (W, A) float32, log_prob (W,) float32 or None)
 Policy = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray | None]]
@@ -46,7 +48,7 @@ class Budget:
         return writer.num_steps >= (self.steps or 0)
 
     def describe(self) -> str:
-        return f"{self.episodes} episodes" if self.episodes is not None else f"{self.steps} steps"
+        return count(self.episodes, "episode") if self.episodes is not None else count(self.steps or 0, "step")
 
 
 @dataclass(frozen=True)
@@ -131,6 +133,7 @@ def run_collection(
     try:
         with tqdm(total=total, initial=writer.num_steps, unit="step", disable=not progress, dynamic_ncols=True) as bar:
             while not budget.reached(writer):
+                interrupt.check()
                 actions, log_prob = policy(obs, is_first)
                 obs, rewards, terminated, truncated, info = envs.step(actions)
                 for i in range(n_envs):
@@ -268,8 +271,9 @@ def _collect_random_into(
     if budget.reached(writer):
         if writer.complete:
             raise DatasetError(
-                f"{writer.path} is already complete with {writer.num_episodes} episodes ({writer.num_steps} steps), "
-                f"which meets {budget.describe()}; ask for more or pass --force to collect it again"
+                f"{writer.path} is already complete with {count(writer.num_episodes, 'episode')}"
+                f" ({count(writer.num_steps, 'step')}), which meets {budget.describe()}; ask for more or pass --force"
+                f" to collect it again"
             )
         writer.close(complete=True)  # the collection stopped after its last episode, before marking it done
         return _summary(writer.path, 0, start)

@@ -16,7 +16,8 @@ from typing import Any
 
 import psutil
 
-from coworld.errors import DatasetError
+from coworld.errors import DatasetError, StorageError
+from coworld.storage import WRITE_ERRNOS, failure_reason
 
 
 def lock_path(path: Path) -> Path:
@@ -54,7 +55,14 @@ class WriterLock:
         me = psutil.Process()
         self._record = {"host": socket.gethostname(), "pid": me.pid, "started": me.create_time()}
         for _ in range(3):
-            if self._try_create():
+            try:
+                created = self._try_create()
+            except OSError as err:
+                if err.errno not in WRITE_ERRNOS:
+                    raise
+                reason = failure_reason(err)
+                raise StorageError(f"cannot write {path}: {reason}", reason) from None
+            if created:
                 return
             holder = read_lock(path)
             if holder is None:
@@ -71,8 +79,8 @@ class WriterLock:
 
     def _try_create(self) -> bool:
         tmp = self.path.with_name(f"{self.path.name}.{os.getpid()}.tmp")
-        tmp.write_text(json.dumps(self._record))
         try:
+            tmp.write_text(json.dumps(self._record))
             os.link(tmp, self.path)
             return True
         except FileExistsError:
@@ -86,6 +94,10 @@ class WriterLock:
             self.path.unlink(missing_ok=True)
 
     def release(self) -> None:
-        """Remove the lock file if it is still ours."""
+        """Remove the lock file if it is still ours (one left on a location that became read-only is stale later)."""
         if read_lock(self._dataset) == self._record:
-            self.path.unlink(missing_ok=True)
+            try:
+                self.path.unlink(missing_ok=True)
+            except OSError as err:
+                if err.errno not in WRITE_ERRNOS:
+                    raise

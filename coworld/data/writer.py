@@ -4,6 +4,17 @@ Episodes are appended whole. Each :meth:`DatasetWriter.add_episode` writes the r
 committed counters (``num_rows``, ``num_episodes``) and flushes again, so a ``kill -9`` at any moment loses at most
 the episode being written: readers trust only the committed counters, and a resumed writer drops the rows past them.
 A lock file (:mod:`coworld.data.lock`) keeps a second writer out.
+
+A write the system refuses (a full disk, a read-only location) raises :class:`~coworld.errors.StorageError` and
+leaves the file as the last commit left it. Before each episode the writer asks whether the file has room for it
+(:func:`~coworld.storage.room_problem`), so a full disk is usually met before anything is written. A write that fails
+anyway (another process filled the disk meanwhile) must fail at once: HDF5 keeps chunks in a per-dataset cache that
+it writes when the dataset is closed, and h5py cannot raise from the deallocator of a short-lived dataset object, so
+a failed write used to print only "Exception ignored" while the counters were committed over data that never reached
+the disk. So the chunk cache is off (each write reaches the file in the call that makes it, and raises there), and
+the datasets stay open for the writer's life. After a refused write the writer touches the file no more (even
+shrinking it back can drop committed chunks from HDF5's index) and never marks it complete; a resumed writer drops
+the uncommitted rows.
 """
 
 from __future__ import annotations
@@ -41,7 +52,9 @@ from coworld.data.schema import (
     import_hdf5plugin,
     structural_problems,
 )
-from coworld.errors import ConfigError, DatasetError
+from coworld.errors import ConfigError, DatasetError, StorageError
+from coworld.storage import WRITE_ERRNOS, failure_errno, failure_reason, room_problem
+from coworld.text import count
 
 _VERSIONED_PACKAGES = ("coworld", "numpy", "h5py", "torch", "gymnasium", "mujoco", "dm-control", "metaworld")
 _SMALL_FILTER: dict[str, Any] = {}
@@ -114,9 +127,18 @@ class DatasetWriter:
         self.action_size = int(action_size)
         self.image_shape = tuple(int(x) for x in image_shape)
         self._file: h5py.File | None = None
+        self._nodes: dict[str, h5py.Dataset] = {}
         self._infos: dict[str, tuple[np.dtype, tuple[int, ...]]] | None = None
         self._marked_incomplete = False
-        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._failure: StorageError | None = None
+        if self.path.is_dir():
+            raise DatasetError(
+                f"{self.path} is a folder, not a dataset file; name a file such as {self.path / 'data.h5'}"
+            )
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+        except OSError as err:
+            raise self._refused(err, opening=True) from None
         self._lock = WriterLock(self.path)
         try:
             if self.path.exists() and not resume:
@@ -129,9 +151,10 @@ class DatasetWriter:
                 self._file = self._open_existing()
             else:
                 self._file = self._create(env_config, quality, collector, reference or {}, compression)
+            self._open_nodes()
         except BaseException:
             if self._file is not None:
-                self._file.close()
+                _close_quietly(self._file)
             self._lock.release()
             raise
 
@@ -149,12 +172,14 @@ class DatasetWriter:
         tmp = self.path.with_name(f"{self.path.name}.{os.getpid()}.tmp")
         try:
             self._build(tmp, env_config, quality, collector, reference, compression)
-        except BaseException:
+            os.replace(tmp, self.path)
+        except BaseException as err:
             tmp.unlink(missing_ok=True)
+            if isinstance(err, (OSError, RuntimeError)) and failure_errno(err) in WRITE_ERRNOS:
+                raise self._refused(err, opening=True) from None
             raise
-        os.replace(tmp, self.path)
         self._marked_incomplete = True
-        return h5py.File(self.path, "r+")
+        return h5py.File(self.path, "r+", rdcc_nbytes=0)
 
     def _build(
         self,
@@ -210,8 +235,10 @@ class DatasetWriter:
 
     def _open_existing(self) -> h5py.File:
         try:
-            f = h5py.File(self.path, "r+")
+            f = h5py.File(self.path, "r+", rdcc_nbytes=0)
         except OSError as err:
+            if failure_errno(err) in WRITE_ERRNOS:
+                raise self._refused(err, opening=True) from None
             if "unable to lock file" in str(err) or "already open" in str(err):
                 raise DatasetError(
                     f"cannot resume {self.path}: it is open elsewhere (a reader holds HDF5's file lock); "
@@ -233,7 +260,12 @@ class DatasetWriter:
                     f"{theirs[2]}, not task {ours[0]} with action size {ours[1]} and images {ours[2]}; "
                     f"choose another --out or pass --force to overwrite it"
                 )
-            self._drop_uncommitted(f)
+            try:
+                self._drop_uncommitted(f)
+            except (OSError, RuntimeError) as err:
+                if failure_errno(err) not in WRITE_ERRNOS:
+                    raise
+                raise self._refused(err, opening=True) from None
             infos = {name: (node.dtype, node.shape[1:]) for name, node in f["infos"].items()}
             # An empty dataset has not fixed its infos keys yet; one with rows has (possibly to none).
             self._infos = infos if infos or int(f.attrs["num_rows"]) > 0 else None
@@ -241,6 +273,33 @@ class DatasetWriter:
             f.close()
             raise
         return f
+
+    def _open_nodes(self) -> None:
+        """Open every dataset once, for the writer's whole life (see the module docstring)."""
+        f = self._handle()
+        self._nodes = {name: f[name] for name in ROW_FIELDS}
+        self._nodes.update({f"episodes/{name}": f["episodes"][name] for name in EPISODE_FIELDS})
+        self._nodes.update({f"infos/{name}": node for name, node in f["infos"].items()})
+
+    def _bytes_needed(self, obs: np.ndarray, act: np.ndarray, extras: dict[str, np.ndarray]) -> int:
+        """An upper bound of the bytes an episode adds to the file: its raw data, a rewritten partial chunk of each
+        frame dataset (rows and final frames), and room for HDF5's own records."""
+        frame = int(np.prod(self.image_shape))
+        raw = obs.nbytes + act.nbytes + len(act) * 16 + sum(value.nbytes for value in extras.values())
+        return raw + (FRAME_CHUNK + 1) * frame + 2**20
+
+    def _refused(self, err: BaseException, *, opening: bool = False) -> StorageError:
+        """The one-line error of a write the system refused; after it the writer writes nothing more."""
+        reason = failure_reason(err)
+        text = reason  # or the refusal of room_problem, which says how much room there was
+        if isinstance(err, OSError) and err.strerror and err.strerror.startswith(reason):
+            text = err.strerror
+        if opening:
+            return StorageError(f"cannot write {self.path}: {text}", reason)
+        committed = self.num_episodes
+        kept = f"{count(committed, 'committed episode')} {'is' if committed == 1 else 'are'} intact"
+        self._failure = StorageError(f"cannot write {self.path}: {text}; {kept}", reason)
+        return self._failure
 
     @staticmethod
     def _drop_uncommitted(f: h5py.File) -> None:
@@ -320,6 +379,29 @@ class DatasetWriter:
             raise DatasetError("episode has non-finite actions or rewards; refusing to store it")
         extras = self._check_infos(infos or {}, t)
         n, e = self.num_steps, self.num_episodes
+        problem = room_problem(self.path, self._bytes_needed(obs, act, extras))
+        if problem is not None:  # refused before a byte is written: the file stays as the last commit left it
+            raise self._refused(problem) from None
+        try:
+            self._write_episode(f, n, e, obs, act, rew, bool(terminated), extras)
+        except (OSError, RuntimeError) as err:
+            if failure_errno(err) not in WRITE_ERRNOS:
+                raise
+            raise self._refused(err) from None
+
+    def _write_episode(
+        self,
+        f: h5py.File,
+        n: int,
+        e: int,
+        obs: np.ndarray,
+        act: np.ndarray,
+        rew: np.ndarray,
+        terminated: bool,
+        extras: dict[str, np.ndarray],
+    ) -> None:
+        """Write the rows and the episode record at rows ``n ..`` and episode ``e``, flush, then commit."""
+        t = len(act)
         if not self._marked_incomplete:
             f.attrs["complete"] = False
             self._marked_incomplete = True
@@ -335,9 +417,9 @@ class DatasetWriter:
             "is_first": np.arange(t) == 0,
         }
         for name, value in rows.items():
-            _append(f[name], n, value)
+            _append(self._nodes[name], n, value)
         for name, value in extras.items():
-            _append(f["infos"][name], n, value)
+            _append(self._nodes[f"infos/{name}"], n, value)
         episode = {
             "starts": np.array([n], np.int64),
             "lengths": np.array([t], np.int64),
@@ -347,7 +429,7 @@ class DatasetWriter:
             "checksums": np.array([episode_checksum(obs, act, rew)], np.uint32),
         }
         for name, value in episode.items():
-            _append(f["episodes"][name], e, value)
+            _append(self._nodes[f"episodes/{name}"], e, value)
         f.flush()  # the data is on disk before the counters say it is there
         f.attrs["num_rows"] = n + t
         f.attrs["num_episodes"] = e + 1
@@ -367,7 +449,7 @@ class DatasetWriter:
             f = self._handle()
             for name, value in arrays.items():
                 shape = value.shape[1:]
-                f["infos"].create_dataset(
+                self._nodes[f"infos/{name}"] = f["infos"].create_dataset(
                     name, (0, *shape), value.dtype, maxshape=(None, *shape), chunks=(ROW_CHUNK, *shape), **_SMALL_FILTER
                 )
             self._infos = {name: (value.dtype, value.shape[1:]) for name, value in arrays.items()}
@@ -383,22 +465,43 @@ class DatasetWriter:
         f = self._handle()
         collector = json.loads(f.attrs["collector"])
         collector.update(collector_fields)
-        f.attrs["collector"] = _to_json(collector, "collector")
-        f.attrs["updated"] = _now()
-        f.flush()
+        try:
+            f.attrs["collector"] = _to_json(collector, "collector")
+            f.attrs["updated"] = _now()
+            f.flush()
+        except (OSError, RuntimeError) as err:
+            if failure_errno(err) not in WRITE_ERRNOS:
+                raise
+            raise self._refused(err) from None
 
     # -- closing ---------------------------------------------------------------------------------------------
 
     def close(self, complete: bool | None = None) -> None:
-        """Set the complete flag (None keeps it), flush, close the file and release the lock. Idempotent."""
+        """Set the complete flag (None keeps it), flush, close the file and release the lock. Idempotent.
+
+        The flag is set only once everything before it is on disk; after a refused write it is never set, and the
+        file is closed as it is (HDF5 may still report the buffered data it cannot write; that is ignored).
+        """
         if self._file is None:
             return
+        f, self._nodes = self._file, {}
         try:
-            if complete is not None:
-                self._file.attrs["complete"] = bool(complete)
-                self._file.attrs["updated"] = _now()
-            self._file.flush()
-            self._file.close()
+            if self._failure is not None:
+                _close_quietly(f)
+                return
+            try:
+                f.flush()
+                if complete is not None:
+                    f.attrs["complete"] = bool(complete)
+                    f.attrs["updated"] = _now()
+                    f.flush()
+            except (OSError, RuntimeError) as err:
+                if failure_errno(err) not in WRITE_ERRNOS:
+                    raise
+                error = self._refused(err)
+                _close_quietly(f)
+                raise error from None
+            f.close()
         finally:
             self._file = None
             self._lock.release()
@@ -412,6 +515,8 @@ class DatasetWriter:
         self.close()
 
     def _handle(self) -> h5py.File:
+        if self._failure is not None:
+            raise self._failure
         if self._file is None:
             raise DatasetError(f"the writer of {self.path} is closed")
         return self._file
@@ -421,6 +526,14 @@ def _append(node: h5py.Dataset, at: int, value: np.ndarray) -> None:
     """Write ``value`` (k, ...) at rows ``at .. at+k`` of a resizable dataset, growing it (one contiguous write)."""
     node.resize(at + len(value), axis=0)
     node[at : at + len(value)] = value
+
+
+def _close_quietly(f: h5py.File) -> None:
+    """Close a file whose writes have failed; HDF5 reports the data it still cannot write, which is known."""
+    try:
+        f.close()
+    except (OSError, RuntimeError):
+        pass
 
 
 def _to_json(value: Mapping[str, Any], name: str) -> str:

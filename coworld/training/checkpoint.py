@@ -2,8 +2,10 @@
 
 A checkpoint is a dict of tensors, numbers, strings, lists, tuples and dicts written with ``torch.save`` to a
 temporary file in the same folder, flushed to disk and renamed over the old one, so a kill at any moment
-leaves either the previous checkpoint or the new one, never half of one. Loading uses
-``torch.load(weights_only=True)``: a checkpoint from an untrusted source cannot run code.
+leaves either the previous checkpoint or the new one, never half of one. A write the system refuses (a full disk)
+raises :class:`~coworld.errors.StorageError` with one line, removes the temporary file and leaves the previous
+checkpoint as it was. Loading uses ``torch.load(weights_only=True)``: a checkpoint from an untrusted source cannot
+run code.
 """
 
 from __future__ import annotations
@@ -11,12 +13,13 @@ from __future__ import annotations
 import os
 import random
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
 import numpy as np
 import torch
 
-from coworld.errors import CheckpointError
+from coworld.errors import CheckpointError, StorageError
+from coworld.storage import WRITE_ERRNOS, failure_errno, failure_reason
 
 CHECKPOINT_NAME = "checkpoint.pt"
 
@@ -24,13 +27,46 @@ CHECKPOINT_NAME = "checkpoint.pt"
 def save_checkpoint(path: str | os.PathLike[str], state: dict[str, Any]) -> None:
     """Write ``state`` to ``path`` atomically (write to a temporary file, fsync, rename)."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.tmp")
-    with open(tmp, "wb") as f:
-        torch.save(state, f)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with open(tmp, "wb") as f:
+            out = _Recording(f)
+            try:
+                torch.save(state, out)
+            except RuntimeError as err:  # torch reports a failed write as "unexpected pos ..."; the OSError says why
+                raise (out.error or err) from None
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except (OSError, RuntimeError) as err:
+        tmp.unlink(missing_ok=True)
+        if failure_errno(err) not in WRITE_ERRNOS:
+            raise
+        kept = "the previous checkpoint is intact" if path.exists() else "no earlier checkpoint exists"
+        reason = failure_reason(err)
+        raise StorageError(f"cannot save checkpoint {path}: {reason}; {kept}", reason) from None
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+class _Recording:
+    """A file that remembers the OSError of a failed write (torch replaces it by a RuntimeError without errno)."""
+
+    def __init__(self, f: IO[bytes]) -> None:
+        self._f = f
+        self.error: OSError | None = None
+
+    def write(self, data: Any) -> int:
+        try:
+            return self._f.write(data)
+        except OSError as err:
+            self.error = err
+            raise
+
+    def flush(self) -> None:
+        self._f.flush()
 
 
 def load_checkpoint(path: str | os.PathLike[str], map_location: str | torch.device = "cpu") -> dict[str, Any]:

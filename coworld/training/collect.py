@@ -22,11 +22,12 @@ from typing import Any
 
 import numpy as np
 
-from coworld import envs
+from coworld import envs, interrupt
 from coworld.config import make_config
 from coworld.data import DatasetWriter
 from coworld.data.collect import dataset_fields
 from coworld.errors import CoworldError, DatasetError
+from coworld.storage import check_writable
 from coworld.training.logger import Logger
 from coworld.training.online import OnlineTrainer
 from coworld.training.run import prepare_run_dir, preset_warnings, resolve_device, seed_everything
@@ -80,6 +81,9 @@ def collect_dreamerv2(
     config = make_config(preset, [*overrides, f"seed={seed}", f"device={device}"])
     out = Path(out)
     run_dir = out.with_name(out.name.removesuffix(".h5") + ".run")
+    if out.is_dir():
+        raise DatasetError(f"{out} is a folder, not a dataset file; name a file such as {out / 'data.h5'}")
+    check_writable(out.parent, "--out")
     if out.exists() and not (resume or force):
         raise DatasetError(f"{out} already exists; pass --resume to continue it or --force to overwrite it")
     if force and run_dir.exists():
@@ -171,6 +175,7 @@ def _record_policy(
             frames, actions, rewards, successes = [obs], [], [], []
             state, terminated, truncated = None, False, False
             while not (terminated or truncated):
+                interrupt.check()
                 action, state = agent.policy(obs[None], state, mode="train")
                 obs, reward, terminated, truncated, info = env.step(action[0])
                 frames.append(obs)

@@ -21,7 +21,7 @@ from typing import Any, Protocol
 import numpy as np
 import torch
 
-from coworld import envs
+from coworld import envs, interrupt
 from coworld.training.progress import progress_bar
 
 
@@ -218,6 +218,7 @@ def evaluate(
                 frames = [[obs[i]] for i in range(n)]
                 actions = np.zeros((workers, *venv.single_action_space.shape), np.float32)
                 for t in range(spec.episode_length):
+                    interrupt.check()
                     for i in np.flatnonzero(alive):
                         with rngs[i].active():
                             first = np.array([t == 0])

@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from coworld import interrupt
 from coworld.config import to_dict
 from coworld.training.checkpoint import CHECKPOINT_NAME, load_checkpoint, rng_state, save_checkpoint, set_rng_state
 from coworld.training.evaluate import evaluate
@@ -117,6 +118,7 @@ class OfflineTrainer:
         metrics: dict[str, float] = {}
         try:
             while self.updates < s.updates:
+                interrupt.check()
                 metrics = self.agent.train(next(sampler))
                 self.updates += 1
                 bar.update(1)

@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from coworld import envs
+from coworld import envs, interrupt
 from coworld.config import Config, to_dict
 from coworld.data import DatasetWriter, open_dataset
 from coworld.training.checkpoint import CHECKPOINT_NAME, load_checkpoint, rng_state, save_checkpoint, set_rng_state
@@ -183,6 +183,7 @@ class OnlineTrainer:
         last_log = self.steps
         try:
             while self.steps < max_steps:
+                interrupt.check()
                 mode = "random" if self.steps < cfg.prefill else "train"
                 action, self._state = self.agent.policy(self._obs, self._state, mode=mode, is_first=self._is_first)
                 if cfg.expl_noise and mode == "train":

@@ -1,6 +1,7 @@
 """Helpers of the dataset tests: episodes with recognisable frames, and a fake pixel task for collection.
 
-Loaded by path (``conftest.py`` and the subprocess scripts of ``test_crash.py``), since tests are no package.
+Loaded by path (``tests/conftest.py`` and the subprocess scripts of ``tests/processes.py`` and ``test_crash.py``),
+since tests are no package.
 Frames carry their own identity: pixel (0, 0, 0) is the step j within the episode, pixels (0, 0, 1) and (0, 0, 2)
 are the episode id (low and high byte), so a test can tell which step of which episode any frame is.
 """
@@ -77,6 +78,64 @@ def step_space(episodes: list[dict[str, Any]]) -> dict[str, np.ndarray]:
         parts["is_last"].append(np.arange(t + 1) == t)
         parts["is_terminal"].append((np.arange(t + 1) == t) & ep["terminated"])
     return {k: np.concatenate(v) for k, v in parts.items()}
+
+
+def assert_whole_prefix(path: Path, expected: list[dict[str, Any]]) -> int:
+    """The dataset opens and holds exactly the first episodes of ``expected``, each whole; returns how many."""
+    from coworld.data import open_dataset
+
+    with open_dataset(path) as data:
+        n = data.num_episodes
+        assert n <= len(expected)
+        for i in range(n):
+            ep = data.episode(i)
+            np.testing.assert_array_equal(ep["image"], expected[i]["observations"])
+            np.testing.assert_array_equal(ep["reward"][1:], expected[i]["rewards"])
+    return n
+
+
+def assert_unfinished_but_sound(path: Path) -> None:
+    """``verify`` finds the dataset only unfinished: not complete, maybe rows past the last commit (which a resume
+    drops), and nothing else (no checksum, shape or boundary problem in the committed episodes)."""
+    from coworld.data import verify_dataset
+
+    problems = verify_dataset(path)
+    assert any(p.startswith("not complete") for p in problems), problems
+    for problem in problems:
+        assert problem.startswith("not complete") or "rows past the last committed episode" in problem, problems
+
+
+def episode_digests(path: Path) -> list[str]:
+    """One digest per committed episode of frames, actions, rewards and end: to show they were left as they were."""
+    import hashlib
+
+    from coworld.data import open_dataset
+
+    digests = []
+    with open_dataset(path) as data:
+        for i in range(data.num_episodes):
+            ep = data.episode(i)
+            digest = hashlib.sha256()
+            for key in ("image", "action", "reward", "is_terminal"):
+                digest.update(np.ascontiguousarray(ep[key]).tobytes())
+            digests.append(digest.hexdigest())
+    return digests
+
+
+def committed_episodes(path: Path) -> int:
+    """The committed episode count of a dataset another process may be writing (0 while unreadable)."""
+    import h5py
+
+    try:
+        with h5py.File(path, "r", locking=False) as f:
+            return int(f.attrs.get("num_episodes", 0))
+    except (OSError, KeyError, RuntimeError):
+        return 0
+
+
+def folder_state(folder: Path) -> dict[str, bytes]:
+    """Every file under ``folder`` (relative name -> bytes), to show a command left the folder as it was."""
+    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
 
 
 def file_state(path: Path) -> tuple[bytes, int]:

@@ -160,3 +160,43 @@ def test_real_process_exit_codes(dataset_path: Path, tmp_path: Path) -> None:
     assert result.returncode == 2 and result.stderr.count("\n") == 1 and "Traceback" not in result.stderr
     result = subprocess.run([*COWORLD, "dataset", "verify", str(bad)], capture_output=True, text=True)
     assert result.returncode == 1 and "not a readable HDF5 file" in result.stdout
+
+
+def test_merge_refuses_an_input_given_twice(tmp_path: Path, helpers: ModuleType, monkeypatch: pytest.MonkeyPatch):
+    a = helpers.write_dataset(tmp_path / "a.h5", helpers.make_episodes([5, 6]))
+    (tmp_path / "link.h5").symlink_to(a)
+    monkeypatch.chdir(tmp_path)
+    out = tmp_path / "m.h5"
+    for twice in (["a.h5", "a.h5"], ["a.h5", f"../{tmp_path.name}/a.h5"], [str(a), "link.h5"]):
+        result = CliRunner().invoke(main, ["dataset", "merge", *twice, "--out", str(out)])
+        assert result.exit_code == 2 and len(result.stderr.splitlines()) == 1, result.output
+        assert f"{twice[1]} is given twice" in result.stderr and "list each input once" in result.stderr
+        assert not out.exists()
+
+
+def test_merge_onto_an_existing_file_needs_force_and_offers_no_resume(tmp_path: Path, helpers: ModuleType) -> None:
+    a = helpers.write_dataset(tmp_path / "a.h5", helpers.make_episodes([5]))
+    b = helpers.write_dataset(tmp_path / "b.h5", helpers.make_episodes([6], first_id=1))
+    out = helpers.write_dataset(tmp_path / "m.h5", helpers.make_episodes([4]))
+    before = helpers.file_state(out)
+    result = CliRunner().invoke(main, ["dataset", "merge", str(a), str(b), "--out", str(out)])
+    assert result.exit_code == 2 and len(result.stderr.splitlines()) == 1
+    assert "already exists" in result.stderr and "--force" in result.stderr and "--resume" not in result.stderr
+    assert helpers.file_state(out) == before
+    result = CliRunner().invoke(main, ["dataset", "merge", str(a), str(b), "--out", str(out), "--force"])
+    assert result.exit_code == 0 and f"wrote {out}: random, 2 episodes, 11 steps" in result.stdout
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.h5", "b.h5", "m.h5"]  # nothing left beside it
+
+
+def test_counts_agree_with_their_nouns(tmp_path: Path, helpers: ModuleType, monkeypatch: pytest.MonkeyPatch) -> None:
+    from coworld.text import count
+
+    assert [count(n, "episode") for n in (0, 1, 2, 1000)] == ["0 episodes", "1 episode", "2 episodes", "1,000 episodes"]
+    helpers.patch_envs(monkeypatch.setattr)
+    out = tmp_path / "one.h5"
+    args = ["collect", "--policy", "random", "--task", helpers.FAKE_TASK, "--episodes", "1", "--out", str(out)]
+    result = CliRunner().invoke(main, [*args, "--quiet"])
+    assert result.exit_code == 0 and f"wrote {out}: 1 episode, " in result.stdout, result.output
+    result = CliRunner().invoke(main, [*args, "--resume"])
+    assert result.exit_code == 2 and "is already complete with 1 episode (" in result.stderr
+    assert "which meets 1 episode;" in result.stderr

@@ -1,9 +1,11 @@
-"""DatasetWriter: round trip, D4RL layout and boundaries, existing files, resume, locks, bad episodes."""
+"""DatasetWriter: round trip, D4RL layout and boundaries, existing files, resume, locks, bad episodes, a full disk."""
 
 from __future__ import annotations
 
+import errno
 import json
 import os
+import re
 import socket
 from datetime import datetime
 from pathlib import Path
@@ -15,9 +17,9 @@ import numpy as np
 import psutil
 import pytest
 
-from coworld.data import DatasetWriter, open_dataset
+from coworld.data import DatasetWriter, open_dataset, verify_dataset
 from coworld.data.lock import lock_path
-from coworld.errors import ConfigError, DatasetError
+from coworld.errors import ConfigError, DatasetError, StorageError
 
 
 def test_round_trip_gives_back_every_episode(dataset_path: Path, episodes: list[dict[str, Any]]) -> None:
@@ -242,3 +244,42 @@ def test_resume_while_a_reader_has_the_file_open_says_so(dataset_path: Path, hel
         with pytest.raises(DatasetError, match="it is open elsewhere"):
             DatasetWriter(dataset_path, quality="random", resume=True, **helpers.WRITER_ARGS)
     assert not lock_path(dataset_path).exists()
+
+
+def test_a_write_refused_after_the_room_check_keeps_the_commits_and_resumes(
+    small_disk, helpers: ModuleType, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The disk fills between the room check and the write (another process wrote meanwhile): the write's own error
+    stops the writer at once, the commits before stay whole, and a resumed writer continues once there is room."""
+    import coworld.data.writer as writer_module
+
+    monkeypatch.setattr(writer_module, "room_problem", lambda path, needed: None)
+    disk = small_disk(3 * 2**20)
+    if not disk.mounted:  # without root there is no small disk to fill: the fourth episode's first write is refused
+        real_append, calls = writer_module._append, []
+
+        def append(node: Any, at: int, value: Any) -> None:
+            calls.append(node.name)
+            if len(calls) > 3 * 15:  # 15 appends per episode: 7 row fields, 2 infos, 6 episode fields
+                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+            real_append(node, at, value)
+
+        monkeypatch.setattr(writer_module, "_append", append)
+    path, episodes = disk.path / "w.h5", helpers.make_episodes([60] * 20)
+    with pytest.raises(
+        StorageError, match=r"No space left on device; (\d+) committed episodes? (is|are) intact"
+    ) as err:
+        with DatasetWriter(path, quality="random", compression="none", **helpers.WRITER_ARGS) as writer:
+            for ep in episodes:
+                writer.add_episode(ep["observations"], ep["actions"], ep["rewards"], ep["terminated"], ep["infos"])
+    kept = int(re.search(r"(\d+) committed", str(err.value)).group(1))
+    helpers.assert_unfinished_but_sound(path)
+    assert helpers.assert_whole_prefix(path, episodes) == kept > 0
+
+    monkeypatch.undo()
+    disk.grow(64 * 2**20)
+    with DatasetWriter(path, quality="random", resume=True, **helpers.WRITER_ARGS) as writer:
+        for ep in episodes[writer.num_episodes :]:
+            writer.add_episode(ep["observations"], ep["actions"], ep["rewards"], ep["terminated"], ep["infos"])
+        writer.close(complete=True)
+    assert helpers.assert_whole_prefix(path, episodes) == 20 and verify_dataset(path) == []

@@ -1,6 +1,10 @@
-"""make_vector: worker processes, per-env seeds, NEXT_STEP autoreset."""
+"""make_vector: worker processes, per-env seeds, NEXT_STEP autoreset, SIGINT, how many workers make sense."""
 
 from __future__ import annotations
+
+import os
+import signal
+import time
 
 import numpy as np
 import pytest
@@ -54,3 +58,37 @@ def test_bad_input_raises_in_the_caller() -> None:
     single = make_vector("toy_reach", 1, seed=5)
     assert single.reset()[0].shape == (1, 64, 64, 3)
     single.close()
+
+
+def test_workers_ignore_sigint_so_a_terminal_ctrl_c_does_not_break_a_step() -> None:
+    venv = make_vector("toy_reach", 2, seed=0)
+    try:
+        venv.reset(seed=0)
+        for process in venv.processes:  # what a Ctrl-C in a terminal does to the whole process group
+            os.kill(process.pid, signal.SIGINT)
+        time.sleep(0.5)
+        obs, *_ = venv.step(np.zeros((2, *venv.single_action_space.shape), np.float32))
+        assert obs.shape[0] == 2 and all(process.is_alive() for process in venv.processes)
+    finally:
+        venv.close()
+    assert not any(process.is_alive() for process in venv.processes)
+
+
+def test_workers_are_capped_by_episodes_and_cores(monkeypatch) -> None:
+    import coworld.envs.vector as vector
+
+    monkeypatch.setattr(vector, "available_cores", lambda: 4)
+    assert vector.sensible_workers(2, episodes=10) == (2, "")
+    assert vector.sensible_workers(1000, episodes=2) == (
+        2,
+        "--workers 1000 capped to 2: one per episode (2 episodes asked for)",
+    )
+    assert vector.sensible_workers(1000, episodes=1) == (
+        1,
+        "--workers 1000 capped to 1: one per episode (1 episode asked for)",
+    )
+    assert vector.sensible_workers(1000) == (4, "--workers 1000 capped to 4: one per CPU core (4 cores available)")
+    assert vector.sensible_workers(8, episodes=100) == (
+        4,
+        "--workers 8 capped to 4: one per CPU core (4 cores available)",
+    )

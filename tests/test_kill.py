@@ -1,0 +1,126 @@
+"""Fault injection: SIGKILL `collect`, `train` and `dataset merge` at seeded random moments, again and again.
+
+After every kill, what was committed before it is intact (the dataset verifies apart from being unfinished, every
+episode kept by an earlier round is unchanged, the checkpoint loads, the file a merge replaces is byte for byte the
+same), and the last rerun finishes with exactly the amount asked for. A few kills run in the fast suite; the longer
+sweeps are marked slow.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from types import ModuleType
+
+import numpy as np
+import pytest
+
+from coworld.data import open_dataset, verify_dataset
+from coworld.training.checkpoint import load_checkpoint
+
+
+@pytest.mark.parametrize(
+    "kills", [pytest.param(3, id="3-kills"), pytest.param(12, id="12-kills", marks=pytest.mark.slow)]
+)
+def test_collect_killed_at_random_moments(kills: int, tmp_path: Path, processes: ModuleType, helpers: ModuleType):
+    path, wanted = tmp_path / "collect.h5", 20 + 6 * kills
+    args = [*f"collect --policy random --task {helpers.FAKE_TASK} --workers 2 --quiet".split(), "--out", str(path)]
+    args += ["--episodes", str(wanted)]
+    rng = np.random.default_rng(kills)
+    kept: list[str] = []
+    for round_ in range(kills):
+        proc = processes.start_script(processes.COLLECT_SCRIPT, *args, *(["--resume"] if round_ else []))
+        reported = processes.wait_for_episodes(proc, len(kept) + int(rng.integers(1, 6)))
+        time.sleep(float(rng.uniform(0.0, 0.1)))  # between episodes or in the middle of writing one
+        processes.kill(proc)
+        helpers.assert_unfinished_but_sound(path)
+        digests = helpers.episode_digests(path)
+        assert reported <= len(digests) < wanted and digests[: len(kept)] == kept
+        kept = digests
+    proc = processes.start_script(processes.COLLECT_SCRIPT, *args, "--resume")
+    assert proc.wait(timeout=300) == 0, proc.stderr.read() if proc.stderr else ""
+    with open_dataset(path) as data:
+        assert data.complete and data.num_episodes == wanted
+    assert helpers.episode_digests(path)[: len(kept)] == kept
+    assert verify_dataset(path) == []
+
+
+@pytest.mark.parametrize(
+    "kills", [pytest.param(3, id="3-kills"), pytest.param(10, id="10-kills", marks=pytest.mark.slow)]
+)
+def test_merge_killed_at_random_moments(kills: int, tmp_path: Path, processes: ModuleType, helpers: ModuleType):
+    episodes = helpers.make_episodes([60] * 160)
+    a = helpers.write_dataset(tmp_path / "a.h5", episodes[:80], compression="none")
+    b = helpers.write_dataset(tmp_path / "b.h5", episodes[80:], compression="none")
+    out = helpers.write_dataset(tmp_path / "m.h5", episodes[:2])  # replaced with --force once the merge is whole
+    before = helpers.file_state(out)
+    args = ["dataset", "merge", str(a), str(b), "--out", str(out), "--force"]
+    rng = np.random.default_rng(kills)
+    for _ in range(kills):
+        proc = processes.start_cli(*args)
+        processes.wait_for(tmp_path.joinpath("m.h5.merging").exists, proc, what="the merge to start")
+        time.sleep(float(rng.uniform(0.0, 1.0)))
+        processes.kill(proc)
+        assert helpers.file_state(out) == before
+    done = processes.run_cli(*args)
+    assert done.returncode == 0, done.stderr
+    assert helpers.assert_whole_prefix(out, episodes) == 160 and verify_dataset(out) == []
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.h5", "b.h5", "m.h5"]  # what the kills left is gone
+
+
+TRAIN = (
+    "train --target toy_reach_shifted --preset tiny --no-progress --device cpu --threads 1 --set train.eval_episodes=1"
+).split()
+CURL = "--algo curl --set curl.updates=150 --set curl.checkpoint_every=10 --set curl.eval_every=1000".split()
+COWORLD = (
+    "--algo coworld --source toy_reach --set train.prefill=100 --set coworld.pretrain_steps=200"
+    " --set coworld.iterations=3 --set coworld.target_updates=10 --set coworld.source_updates=10"
+).split()
+
+
+@pytest.mark.parametrize(
+    ("algo", "kills"),
+    [
+        pytest.param("curl", 2, id="curl-2-kills"),
+        pytest.param("coworld", 5, id="coworld-5-kills", marks=pytest.mark.slow),
+    ],
+)
+def test_train_killed_at_random_moments(
+    algo: str, kills: int, tmp_path: Path, processes: ModuleType, helpers: ModuleType, toy_dataset_writer
+) -> None:
+    dataset = toy_dataset_writer(tmp_path / "toy.h5", "toy_reach_shifted")
+    run = tmp_path / "run"
+    checkpoint, replay = run / "checkpoint.pt", run / "source_replay.h5"
+    args = [*TRAIN, *(CURL if algo == "curl" else COWORLD), "--dataset", str(dataset), "--logdir", str(run)]
+    rng = np.random.default_rng(kills)
+    progress, experience = -1, []
+    for _ in range(kills):
+        mtime = checkpoint.stat().st_mtime_ns if checkpoint.exists() else None
+        proc = processes.start_cli(*args)
+        if not processes.wait_for(_replaced(checkpoint, mtime), proc, what="a checkpoint", or_end=True):
+            break  # it finished before this kill
+        time.sleep(float(rng.uniform(0.0, 2.0)))
+        processes.kill(proc)
+        state = load_checkpoint(checkpoint)  # whole: it loads
+        done = state["updates"] if algo == "curl" else state["agent"]["updates"]
+        assert done >= progress and done % 10 == 0  # checkpoint boundaries only, never going back
+        progress = done
+        if algo == "coworld":  # the source agent's experience, a dataset too
+            helpers.assert_unfinished_but_sound(replay)
+            digests = helpers.episode_digests(replay)
+            assert digests[: len(experience)] == experience
+            experience = digests
+    assert progress >= 0
+    done = processes.run_cli(*args)
+    assert done.returncode == 0, done.stderr[-3000:]
+    state = load_checkpoint(checkpoint)
+    if algo == "curl":
+        assert state["updates"] == 150
+    else:
+        assert state["progress"]["iteration"] == 3 and state["agent"]["updates"] == 30
+        assert helpers.episode_digests(replay)[: len(experience)] == experience
+
+
+def _replaced(path: Path, mtime: int | None):
+    """Whether ``path`` exists and is not the file of modification time ``mtime``."""
+    return lambda: path.exists() and path.stat().st_mtime_ns != mtime
