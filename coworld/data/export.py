@@ -17,7 +17,7 @@ from __future__ import annotations
 import io
 import os
 import shutil
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -67,7 +67,7 @@ def export_npz_episodes(
         tmp = out.with_name(f".{out.name}.{os.getpid()}.tmp")
         shutil.rmtree(tmp, ignore_errors=True)
         tmp.mkdir(parents=True)
-        stamp = datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%S")
+        stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%S")
         width = max(6, len(str(data.num_episodes - 1)))
         try:
             for i in tqdm(range(data.num_episodes), unit="episode", desc="exporting", disable=not progress):
