@@ -45,11 +45,11 @@ from coworld.losses.coworld import (
     source_reward_loss_on_target,
     value_regulariser,
 )
+from coworld.progress import progress_bar
 from coworld.training.checkpoint import CHECKPOINT_NAME, load_checkpoint, rng_state, save_checkpoint, set_rng_state
 from coworld.training.evaluate import evaluate
 from coworld.training.logger import Logger, Rate
 from coworld.training.online import OnlineTrainer
-from coworld.training.progress import progress_bar
 from coworld.viz.training import log_open_loop
 
 CHECKPOINT_KIND = "coworld"

@@ -16,12 +16,12 @@ from typing import Any
 
 import h5py
 import numpy as np
-from tqdm import tqdm
 
 from coworld import interrupt
 from coworld.data.reader import open_dataset
 from coworld.data.writer import DatasetWriter
 from coworld.errors import ConfigError, DatasetError
+from coworld.progress import progress_bar
 from coworld.text import count
 
 # policy(obs (W, H, W, C) uint8, is_first (W,) bool) -> (actions (W, A) float32, log_prob (W,) float32 or None)
@@ -131,7 +131,9 @@ def run_collection(
     total = budget.steps if budget.steps is not None else (budget.episodes or 0) * (expected_length or 0) or None
     env_steps = 0
     try:
-        with tqdm(total=total, initial=writer.num_steps, unit="step", disable=not progress, dynamic_ncols=True) as bar:
+        with progress_bar(
+            total=total, initial=writer.num_steps, desc="collect", unit="env steps", enabled=progress
+        ) as bar:
             while not budget.reached(writer):
                 interrupt.check()
                 actions, log_prob = policy(obs, is_first)

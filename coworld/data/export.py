@@ -23,11 +23,11 @@ from typing import Any
 
 import numpy as np
 import psutil
-from tqdm import tqdm
 
 from coworld.data.api import episode_record, resolve_dataset
 from coworld.data.reader import Dataset, open_dataset
 from coworld.errors import CoworldError, DatasetError
+from coworld.progress import progress_bar
 
 MINARI_HINT = "pip install 'coworld[minari]' (or: pip install minari)"
 EXPORT_FORMATS = ("minari", "npz-episodes")
@@ -70,7 +70,7 @@ def export_npz_episodes(
         stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%S")
         width = max(6, len(str(data.num_episodes - 1)))
         try:
-            for i in tqdm(range(data.num_episodes), unit="episode", desc="exporting", disable=not progress):
+            for i in progress_bar(range(data.num_episodes), desc="export", unit="episodes", enabled=progress):
                 episode = step_episode(data, i)
                 buffer = io.BytesIO()
                 np.savez_compressed(buffer, **episode)
@@ -154,7 +154,7 @@ def export_minari(
                 _minari_metadata(data, name, minari.__version__, author, author_email, code_permalink)
             )
             episode_stats, summarize = [], EpisodeMetadataCallback()
-            for i in tqdm(range(data.num_episodes), unit="episode", desc="exporting", disable=not progress):
+            for i in progress_bar(range(data.num_episodes), desc="export", unit="episodes", enabled=progress):
                 episode = episode_record(data, i)
                 infos = {
                     key: np.concatenate([np.zeros((1, *value.shape[1:]), value.dtype), value])

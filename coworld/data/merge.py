@@ -11,13 +11,12 @@ import os
 from collections.abc import Sequence
 from pathlib import Path
 
-from tqdm import tqdm
-
 from coworld import interrupt
 from coworld.data.lock import WriterLock
 from coworld.data.reader import Dataset, open_dataset
 from coworld.data.writer import DatasetWriter
 from coworld.errors import DatasetError, StorageError
+from coworld.progress import progress_bar
 from coworld.storage import check_writable, fsync_path
 
 
@@ -142,7 +141,7 @@ def _merge_into(datasets: list[Dataset], out: Path, quality: str, compression: s
             compression=compression,
         )
         total = sum(data.num_episodes for data in datasets)
-        with writer, tqdm(total=total, unit="episode", desc="merging", disable=not progress) as bar:
+        with writer, progress_bar(total=total, desc="merge", unit="episodes", enabled=progress) as bar:
             for data in datasets:
                 for i in range(data.num_episodes):
                     interrupt.check()

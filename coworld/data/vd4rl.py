@@ -32,12 +32,12 @@ from typing import Any
 
 import h5py
 import numpy as np
-from tqdm import tqdm
 
 from coworld.data.collect import dataset_fields, default_dataset_path
 from coworld.data.schema import IMAGE_SHAPE
 from coworld.data.writer import DatasetWriter
 from coworld.errors import ConfigError, DatasetError
+from coworld.progress import progress_bar
 
 # V-D4RL's folder names of its qualities, and the environments it covers.
 VD4RL_QUALITIES = {
@@ -426,7 +426,7 @@ def import_vd4rl(
                     )
             episodes = iter_episodes(source, skip=skip, resize=side if resized else None)
             total = len(source.episodes)
-            with tqdm(total=total, initial=skip, unit="episode", desc="importing", disable=not progress) as bar:
+            with progress_bar(total=total, initial=skip, desc="import", unit="episodes", enabled=progress) as bar:
                 for frames, actions, rewards, terminated in episodes:
                     writer.add_episode(frames, actions, rewards, terminated)
                     bar.update()

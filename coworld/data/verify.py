@@ -12,11 +12,11 @@ from pathlib import Path
 
 import h5py
 import numpy as np
-from tqdm import tqdm
 
 from coworld.data.reader import open_h5
 from coworld.data.schema import JSON_ATTRS, ROW_FIELDS, episode_checksum, structural_problems
 from coworld.errors import DatasetError
+from coworld.progress import progress_bar
 
 _MAX_LISTED = 10  # per kind of per-episode finding
 
@@ -100,7 +100,7 @@ def _checksum_problems(
     stored = f["episodes/checksums"][: len(starts)]
     frames, finals = f["observations"], f["episodes/final_observations"]
     unreadable, mismatched = [], []
-    for i in tqdm(range(len(starts)), desc="checking frames", unit="episode", disable=not progress, leave=False):
+    for i in progress_bar(range(len(starts)), desc="verify", unit="episodes", enabled=progress, leave=False):
         s, t = int(starts[i]), int(lengths[i])
         try:
             obs = np.concatenate([frames[s : s + t], finals[i : i + 1]])

@@ -22,7 +22,7 @@ import numpy as np
 import torch
 
 from coworld import envs, interrupt
-from coworld.training.progress import progress_bar
+from coworld.progress import progress_bar
 
 
 class Agent(Protocol):

@@ -17,10 +17,10 @@ import numpy as np
 
 from coworld import interrupt
 from coworld.config import to_dict
+from coworld.progress import progress_bar
 from coworld.training.checkpoint import CHECKPOINT_NAME, load_checkpoint, rng_state, save_checkpoint, set_rng_state
 from coworld.training.evaluate import evaluate
 from coworld.training.logger import Logger, Rate
-from coworld.training.progress import progress_bar
 from coworld.viz.training import log_open_loop
 
 SamplerFactory = Callable[[int], Iterator[dict[str, np.ndarray]]]

@@ -31,10 +31,10 @@ import numpy as np
 from coworld import envs, interrupt
 from coworld.config import Config, to_dict
 from coworld.data import DatasetWriter, open_dataset
+from coworld.progress import progress_bar
 from coworld.training.checkpoint import CHECKPOINT_NAME, load_checkpoint, rng_state, save_checkpoint, set_rng_state
 from coworld.training.evaluate import evaluate
 from coworld.training.logger import Logger, Rate
-from coworld.training.progress import progress_bar
 from coworld.training.replay import Replay
 from coworld.viz.training import log_open_loop
 

@@ -51,7 +51,7 @@ def test_logger_labels_steps_with_what_they_count_and_keeps_the_console_short(tm
 
 
 def test_progress_off_a_terminal_writes_plain_lines_saying_what_they_count(capsys):
-    from coworld.training.progress import progress_bar
+    from coworld.progress import progress_bar
 
     with progress_bar(total=40, desc="collect", unit="env steps") as bar:
         for _ in range(40):

@@ -8,6 +8,7 @@ saying what its numbers count, e.g. ``collect: 12,000/100,000 env steps (12%) [0
 from __future__ import annotations
 
 import sys
+from collections.abc import Iterable
 from typing import Any, TextIO
 
 import tqdm
@@ -33,14 +34,23 @@ class _Lines:
         self.stream.flush()
 
 
-def progress_bar(*, total: int | None, desc: str, unit: str, enabled: bool = True, **kwargs: Any) -> tqdm.tqdm:
-    """A tqdm bar over ``total`` items counted in ``unit`` (plural, e.g. "env steps"); disabled when not
-    ``enabled``. See the module docstring for what it writes to a terminal and elsewhere."""
+def progress_bar(
+    iterable: Iterable[Any] | None = None,
+    *,
+    total: int | None = None,
+    desc: str,
+    unit: str,
+    enabled: bool = True,
+    **kwargs: Any,
+) -> tqdm.tqdm:
+    """A tqdm bar over ``iterable`` or ``total`` items counted in ``unit`` (plural, e.g. "env steps"); disabled
+    when not ``enabled``. See the module docstring for what it writes to a terminal and elsewhere."""
     if not enabled:
-        return tqdm.tqdm(total=total, disable=True, **kwargs)
+        return tqdm.tqdm(iterable, total=total, disable=True, **kwargs)
     if sys.stderr.isatty():
-        return tqdm.tqdm(total=total, desc=desc, unit=f" {unit}", dynamic_ncols=True, **kwargs)
+        return tqdm.tqdm(iterable, total=total, desc=desc, unit=f" {unit}", dynamic_ncols=True, **kwargs)
     return tqdm.tqdm(
+        iterable,
         total=total,
         desc=desc,
         unit=f" {unit}",
