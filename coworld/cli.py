@@ -24,6 +24,8 @@ COMMANDS = {
     "dataset": "coworld.commands.dataset:dataset",
     "train": "coworld.commands.train:train",
     "eval": "coworld.commands.evaluate:evaluate",
+    "sweep": "coworld.commands.sweep:sweep",
+    "report": "coworld.commands.report:report",
 }
 
 
