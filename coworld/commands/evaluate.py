@@ -27,10 +27,12 @@ def evaluate(ckpt, episodes, workers, seed, video, video_episodes, out, task, de
     from coworld.errors import CoworldError
     from coworld.training.evaluate import evaluate as run_eval
     from coworld.training.evaluate import load_trained_agent, write_video
+    from coworld.training.run import seed_everything
 
     if episodes < 1 or workers < 1:
         raise CoworldError("--episodes and --workers must be at least 1")
     agent, info, config = load_trained_agent(Path(ckpt), device=device)
+    seed_everything(seed)  # the agents sample latents (and some actions): the same --seed gives the same result
     task = task or info["target"]
     discount = config.actor_critic.discount if hasattr(agent, "value") else None
     result, frames = run_eval(
