@@ -83,8 +83,8 @@ def _child_setup(parent: int) -> None:
         os._exit(1)
 
 
-def spawn(args: tuple[str, ...], log: IO[bytes], threads: int) -> subprocess.Popen:
-    """Start ``coworld ARGS`` with this interpreter: own process group, output to ``log``, dies with this thread."""
+def spawn(argv: list[str], log: IO[bytes], threads: int) -> subprocess.Popen:
+    """Start ``argv``: its own process group, output to ``log``, killed when this thread's process dies."""
     env = {**os.environ, "OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads)}
     in_main = threading.current_thread() is threading.main_thread()
     setup = None
@@ -95,7 +95,7 @@ def spawn(args: tuple[str, ...], log: IO[bytes], threads: int) -> subprocess.Pop
             _child_setup(parent)
 
     return subprocess.Popen(
-        [sys.executable, *CLI, *args],
+        argv,
         stdin=subprocess.DEVNULL,
         stdout=log,
         stderr=subprocess.STDOUT,
@@ -161,7 +161,7 @@ class JobProcess:
         self._write(f"==== {time.strftime('%H:%M:%S')} coworld {' '.join(args)}\n")
         assert self._log is not None
         self._step_start = time.time()
-        self._proc = spawn(args, self._log, self.threads)
+        self._proc = spawn([sys.executable, *CLI, *args], self._log, self.threads)
         write_json(self.job.pid_file, process_record(self._proc.pid))
 
     def poll(self) -> JobResult | None:
