@@ -390,20 +390,16 @@ class _Tracker:
         self.results.append(result)
         job = self.jobs[result.name]
         took = f"{result.wall_s:.0f} s, {result.cpu_s:.0f} CPU s"
-        if result.returncode == 0:
-            if job.kind == "run":
-                self.run_states[job.name] = "done"
-                try:
-                    value = json.loads((job.run_dir / "eval.json").read_text())["mean"]  # type: ignore[operator]
-                    self.view.event(f"done {job.name}: return {value:.1f} ({took})")
-                except (OSError, ValueError, KeyError):
-                    self.view.event(f"done {job.name} ({took})")
-            else:
-                self.view.event(f"done {job.name} ({took})")
-        else:
-            if job.kind == "run":
-                self.run_states[job.name] = "failed"
+        if job.kind == "run":
+            self.run_states[job.name] = "done" if result.returncode == 0 else "failed"
+        if result.returncode != 0:
             self.view.event(f"FAILED {job.name} (exit code {result.returncode}); log: {job.log}")
+            return
+        try:
+            mean = json.loads((job.run_dir / "eval.json").read_text())["mean"]  # type: ignore[operator]
+            self.view.event(f"done {job.name}: return {mean:.1f} ({took})")
+        except (TypeError, OSError, ValueError, KeyError):  # a dataset, or a run without its result
+            self.view.event(f"done {job.name} ({took})")
 
     def refresh(self) -> None:
         running = {

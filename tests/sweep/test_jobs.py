@@ -28,18 +28,6 @@ def _job(tmp_path: Path, *steps: tuple[str, ...], finish: tuple[Path, Path] | No
     )
 
 
-def _gone(pid: int, timeout: float = 10.0) -> bool:
-    deadline = time.time() + timeout
-    while time.time() < deadline:
-        try:
-            if psutil.Process(pid).status() == psutil.STATUS_ZOMBIE:
-                return True
-        except psutil.NoSuchProcess:
-            return True
-        time.sleep(0.05)
-    return False
-
-
 def test_commands_run_in_order_and_the_result_appears_whole(tmp_path):
     written, final = tmp_path / "tasks.txt.partial", tmp_path / "tasks.txt"
     job = _job(tmp_path, ("tasks",), ("--version",), finish=(tmp_path / "missing", final))
@@ -74,7 +62,7 @@ def test_a_job_is_not_started_when_the_job_it_needs_failed(tmp_path):
     assert result.returncode == 2 and "not started: collect-x failed" in job.log.read_text()
 
 
-def test_stop_ends_the_running_command_and_its_process_group(tmp_path):
+def test_stop_ends_the_running_command_and_its_process_group(tmp_path, process_gone):
     # a command that runs for a minute: collecting far more random episodes than the test waits for
     job = _job(tmp_path, ("collect", "--task", "toy_reach", "--policy", "random", "--episodes", "100000", "--out",
                           str(tmp_path / "big.h5"), "--quiet"))  # fmt: skip
@@ -85,7 +73,7 @@ def test_stop_ends_the_running_command_and_its_process_group(tmp_path):
     assert process.poll() is None
     process.stop(grace=5.0)
     assert process.result is not None and process.result.returncode != 0
-    assert _gone(record["pid"]) and not job.pid_file.exists()
+    assert process_gone(record["pid"]) and not job.pid_file.exists()
 
 
 PARENT = textwrap.dedent(
@@ -101,7 +89,7 @@ PARENT = textwrap.dedent(
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="PR_SET_PDEATHSIG is Linux's")
-def test_a_child_dies_with_a_parent_killed_by_sigkill(tmp_path):
+def test_a_child_dies_with_a_parent_killed_by_sigkill(tmp_path, process_gone):
     parent = subprocess.Popen(
         [sys.executable, "-c", PARENT, str(tmp_path / "log")], stdout=subprocess.PIPE, text=True, start_new_session=True
     )
@@ -110,13 +98,13 @@ def test_a_child_dies_with_a_parent_killed_by_sigkill(tmp_path):
         assert psutil.Process(child).is_running()
         os.kill(parent.pid, signal.SIGKILL)  # the parent only: its child is in another process group
         parent.wait()
-        assert _gone(child), "the child outlived its killed parent"
+        assert process_gone(child), "the child outlived its killed parent"
     finally:
         parent.kill()
         parent.wait()
 
 
-def test_reap_orphan_kills_a_recorded_live_process_and_nothing_else(tmp_path):
+def test_reap_orphan_kills_a_recorded_live_process_and_nothing_else(tmp_path, process_gone):
     orphan = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(120)"], start_new_session=True)
     try:
         pid_file = tmp_path / "run.pid"
@@ -126,7 +114,7 @@ def test_reap_orphan_kills_a_recorded_live_process_and_nothing_else(tmp_path):
         write_json(stale, {**record, "started": record["started"] - 100})
         assert not reap_orphan(stale) and orphan.poll() is None and not stale.exists()
         assert reap_orphan(pid_file)
-        assert _gone(orphan.pid) and not pid_file.exists()
+        assert process_gone(orphan.pid) and not pid_file.exists()
     finally:
         orphan.kill()
         orphan.wait()
