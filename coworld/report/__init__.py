@@ -34,8 +34,8 @@ def write_report(root: str | Path, out: str | Path | None = None) -> Report:
 
     root = Path(root)
     out = Path(out) if out is not None else root
-    out.mkdir(parents=True, exist_ok=True)
     results = load_results(root)
+    out.mkdir(parents=True, exist_ok=True)
     files = []
 
     csv_path = out / "results.csv"
