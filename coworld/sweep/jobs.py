@@ -51,6 +51,8 @@ class Job:
     needs: str | None = None
     """Name of the job that must succeed first (a run's dataset)."""
     run_dir: Path | None = None
+    algo: str = ""
+    """A run's algorithm (how its metrics are read)."""
 
 
 @dataclass(frozen=True)

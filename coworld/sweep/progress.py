@@ -22,8 +22,10 @@ STATES = ("done", "running", "failed", "pending")
 _TAIL_BYTES = 65536
 
 
-def latest_eval(run_dir: Path | None) -> float | None:
-    """The last ``eval/return`` logged in ``run_dir/metrics.jsonl`` (reads only the file's tail), or None."""
+def latest_eval(run_dir: Path | None, algo: str = "") -> float | None:
+    """The target agent's last ``eval/return`` in ``run_dir/metrics.jsonl`` (reads only the file's tail), or None."""
+    from coworld.report.results import target_eval_return
+
     if run_dir is None:
         return None
     path = run_dir / "metrics.jsonl"
@@ -39,11 +41,11 @@ def latest_eval(run_dir: Path | None) -> float | None:
         if '"eval/return"' not in line:
             continue
         try:
-            value = json.loads(line).get("eval/return")
+            value = target_eval_return(json.loads(line), algo)
         except ValueError:
             continue  # the first, cut line of the tail, or a line being written
         if value is not None:
-            return float(value)
+            return value
     return None
 
 
@@ -70,12 +72,13 @@ class ProgressView:
         self._last_line = 0.0
         self._last_counts: dict[str, int] | None = None
 
-    def update(self, states: Mapping[str, str], running: Mapping[str, float | None]) -> None:
-        """``states``: run name -> one of :data:`STATES`; ``running``: running run -> latest eval return."""
+    def update(self, states: Mapping[str, str], running: Mapping[str, float | None], collecting: int = 0) -> None:
+        """``states``: run name -> one of :data:`STATES`; ``running``: running run -> latest eval return;
+        ``collecting``: datasets being collected."""
         counts = {state: 0 for state in STATES}
         for state in states.values():
             counts[state] += 1
-        text = summary_line(counts, running)
+        text = summary_line(counts, running, collecting)
         if self._bar is not None:
             self._bar.n = counts["done"]
             self._bar.set_postfix_str(text.split(": ", 1)[1], refresh=True)
@@ -96,13 +99,15 @@ class ProgressView:
             self._bar.close()
 
 
-def summary_line(counts: Mapping[str, int], running: Mapping[str, float | None]) -> str:
+def summary_line(counts: Mapping[str, int], running: Mapping[str, float | None], collecting: int = 0) -> str:
     """e.g. ``sweep: 3/12 done, 2 running, 0 failed, 7 pending | coworld-...-s0 eval 30.4, curl-...-s1 eval -``."""
     total = sum(counts.values())
     text = (
         f"sweep: {counts['done']}/{total} done, {counts['running']} running, {counts['failed']} failed,"
         f" {counts['pending']} pending"
     )
+    if collecting:
+        text += f", {collecting} dataset{'s' * (collecting > 1)} collecting"
     if running:
         shown = [f"{name} eval {'-' if value is None else f'{value:.1f}'}" for name, value in running.items()]
         text += " | " + ", ".join(shown)

@@ -213,6 +213,7 @@ def plan(spec: SweepSpec, dirs: SweepDirs, execution: Execution) -> Plan:
                 finish=(run_dir / "eval.json.partial", run_dir / "eval.json"),
                 needs=collect_job[run.target],
                 run_dir=run_dir,
+                algo=run.algo,
             )
         )
     return Plan(jobs, runs, finished)
@@ -381,13 +382,17 @@ class _Tracker:
         for name in plan.finished:
             self.run_states[name] = "done"
         self.results: list[JobResult] = []
+        self.collecting: set[str] = set()
 
     def started(self, name: str) -> None:
         if name in self.run_states:
             self.run_states[name] = "running"
+        elif self.jobs[name].kind == "collect":
+            self.collecting.add(name)
 
     def ended(self, result: JobResult) -> None:
         self.results.append(result)
+        self.collecting.discard(result.name)
         job = self.jobs[result.name]
         took = f"{result.wall_s:.0f} s, {result.cpu_s:.0f} CPU s"
         if job.kind == "run":
@@ -403,9 +408,11 @@ class _Tracker:
 
     def refresh(self) -> None:
         running = {
-            name: latest_eval(self.jobs[name].run_dir) for name, state in self.run_states.items() if state == "running"
+            name: latest_eval(self.jobs[name].run_dir, self.jobs[name].algo)
+            for name, state in self.run_states.items()
+            if state == "running"
         }
-        self.view.update(self.run_states, running)
+        self.view.update(self.run_states, running, len(self.collecting))
 
 
 def _run_local(plan: Plan, execution: Execution, tracker: _Tracker) -> None:

@@ -19,6 +19,12 @@ def test_latest_eval_reads_the_last_evaluation_from_the_tail(tmp_path):
         f.write(json.dumps({"step": 301, "wm/loss": 0.5}) + "\n")
         f.write('{"step": 302, "eval/return": 9')  # a line being written
     assert latest_eval(tmp_path) == 12.25
+    with open(tmp_path / "metrics.jsonl", "a") as f:  # CoWorld's source agent evaluated (no value check)
+        f.write("\n" + json.dumps({"step": 4000, "eval/return": 40.0}) + "\n")
+    assert latest_eval(tmp_path, "coworld") is None and latest_eval(tmp_path, "curl") == 40.0
+    with open(tmp_path / "metrics.jsonl", "a") as f:
+        f.write(json.dumps({"step": 400, "eval/return": 7.5, "eval/value_estimate": 1.0, "eval/value_true": 2.0}))
+    assert latest_eval(tmp_path, "coworld") == 7.5
 
 
 def test_summary_line_counts_and_running_returns():

@@ -171,3 +171,22 @@ def test_the_same_sweep_through_ray_gives_the_local_results(tmp_path, local_ray)
         a = json.loads((tmp_path / "local" / "runs" / run.name / "eval.json").read_text())
         b = json.loads((tmp_path / "ray" / "runs" / run.name / "eval.json").read_text())
         assert a["returns"] == b["returns"], run.name
+
+
+def test_dry_run_lists_the_work_and_writes_nothing(tmp_path):
+    from click.testing import CliRunner
+
+    from coworld.cli import main
+
+    root = tmp_path / "sweep"
+    out = CliRunner().invoke(main, ["sweep", "--table", "toy", "--algos", "curl", "--seeds", "2", "--dir", str(root),
+                                    "--dry-run"])  # fmt: skip
+    assert out.exit_code == 0, out.output
+    assert out.output.splitlines() == [
+        f"collect   {root / 'datasets' / 'toy_reach_shifted-random.h5'}",
+        "new       curl-toy_reach_shifted-s0",
+        "new       curl-toy_reach_shifted-s1",
+    ]
+    assert not root.exists()
+    out = CliRunner().invoke(main, ["sweep", "--table", "toy", "--dir", str(root), "--gpus-per-run", "0.5"])
+    assert out.exit_code == 2 and "--gpus-per-run is a Ray resource request" in out.output and not root.exists()
