@@ -30,11 +30,13 @@ class Report:
 
 def write_report(root: str | Path, out: str | Path | None = None) -> Report:
     """Read every run under ``root`` and write the report files into ``out`` (default ``root``)."""
-    from coworld.report import plots
+    from coworld.report import plots, tables
 
     root = Path(root)
     out = Path(out) if out is not None else root
     results = load_results(root)
+    tables.require_scipy()  # the optional dependencies, before anything is written
+    plots.require_matplotlib()
     out.mkdir(parents=True, exist_ok=True)
     files = []
 

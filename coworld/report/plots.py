@@ -20,12 +20,17 @@ from coworld.report.results import RunResult, learning_curve
 from coworld.report.tables import ALGO_ORDER
 
 
-def _figure(width: float, height: float) -> Any:
+def require_matplotlib() -> Any:
+    """matplotlib's ``Figure`` class, or CoworldError with the install hint."""
     try:
         from matplotlib.figure import Figure
     except ModuleNotFoundError:
         raise CoworldError("the report's plots need matplotlib: pip install 'coworld[report]'") from None
-    return Figure(figsize=(width, height), layout="constrained")
+    return Figure
+
+
+def _figure(width: float, height: float) -> Any:
+    return require_matplotlib()(figsize=(width, height), layout="constrained")
 
 
 def _labels(results: Sequence[RunResult]) -> list[str]:

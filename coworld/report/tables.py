@@ -13,20 +13,29 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
+from coworld.errors import CoworldError
 from coworld.report.results import RunResult
 
 ALGO_ORDER = ("curl", "curl-cql", "dreamerv2", "coworld")
 """Columns in the paper's order; other algorithms follow."""
 
 
+def require_scipy() -> Any:
+    """``scipy.stats``, or CoworldError with the install hint."""
+    try:
+        from scipy import stats
+    except ModuleNotFoundError:
+        raise CoworldError("the report's statistics need SciPy: pip install 'coworld[report]'") from None
+    return stats
+
+
 def iqm(scores: np.ndarray, axis: int | None = None) -> np.ndarray:
     """Interquartile mean: the mean of the middle 50% (25% trimmed from each end)."""
-    from scipy import stats
-
-    return stats.trim_mean(scores, 0.25, axis=axis)
+    return require_scipy().trim_mean(scores, 0.25, axis=axis)
 
 
 @dataclass(frozen=True)
@@ -46,8 +55,7 @@ def iqm_interval(
     Args:
         scores_per_task: the normalized scores of each task's runs (at least one run per task).
     """
-    from scipy import stats
-
+    stats = require_scipy()
     tasks = [np.asarray(scores, dtype=np.float64) for scores in scores_per_task if len(scores)]
     if not tasks:
         raise ValueError("no scores")

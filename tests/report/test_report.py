@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import io
 import json
+import sys
 from dataclasses import replace
 from pathlib import Path
 
@@ -194,3 +195,14 @@ def test_run_folders_are_found_by_their_run_json(tmp_path):
     assert out.exit_code == 2 and "no run folders" in out.output
     out = CliRunner().invoke(main, ["report", str(tmp_path / "missing")])
     assert out.exit_code == 2 and "is not a folder" in out.output and not (tmp_path / "missing").exists()
+
+
+@pytest.mark.parametrize("missing", ["scipy", "matplotlib"])
+def test_missing_report_extra_gives_the_install_hint(tmp_path, monkeypatch, missing):
+    make_run(tmp_path, "r", algo="curl", target="toy_reach", seed=0, returns=[1.0, 2.0],
+             records=[{"step": 10, "eval/return": 1.0}])  # fmt: skip
+    monkeypatch.setitem(sys.modules, missing, None)  # what importing it does without the extra
+    monkeypatch.setitem(sys.modules, f"{missing}.stats" if missing == "scipy" else "matplotlib.figure", None)
+    out = CliRunner().invoke(main, ["report", str(tmp_path)])
+    assert out.exit_code == 2 and "pip install 'coworld[report]'" in out.output
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["r"]  # nothing written
