@@ -7,21 +7,20 @@ own torch threads. Every child:
 * appends its output to the job's log file (kept, failed or not), after a header naming the command;
 * is recorded in the job's pid file (host, PID, start time) while it runs, so a later sweep can recognise it;
 * leads its own process group (the sweep stops a job by signalling the whole group), and on Linux is killed by
-  the kernel the moment the process that started it dies (``PR_SET_PDEATHSIG``), so a sweep killed with
-  ``kill -9`` leaves no child behind to race the rerun. Children must therefore be started from a thread that
-  lives as long as they do: the sweep starts them from its main thread, a Ray worker from its task.
+  the kernel the moment the process that started it dies (``PR_SET_PDEATHSIG``, set by the child itself first
+  thing, :mod:`coworld.sweep.child`), so a sweep killed with ``kill -9`` leaves no child behind to race the
+  rerun. The signal follows the thread that started the child: the sweep starts children from its main thread,
+  a Ray task from the thread that waits for them.
 """
 
 from __future__ import annotations
 
-import ctypes
 import json
 import os
 import signal
 import socket
 import subprocess
 import sys
-import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -29,10 +28,10 @@ from typing import IO, Any
 
 import psutil
 
-CLI = ("-c", "from coworld.cli import main; main()")
-"""How a child runs the ``coworld`` command line with the sweep's interpreter."""
+from coworld.sweep.child import PARENT_ENV
 
-_PR_SET_PDEATHSIG = 1
+CLI = ("-c", "from coworld.sweep.child import die_with_parent; die_with_parent(); from coworld.cli import main; main()")
+"""How a child runs the ``coworld`` command line with the sweep's interpreter (dying with the sweep)."""
 
 
 @dataclass(frozen=True)
@@ -65,37 +64,14 @@ class JobResult:
     """CPU seconds (user + system) of the job's commands and their own children."""
 
 
-def _libc() -> Any:
-    if not sys.platform.startswith("linux"):
-        return None
-    try:
-        return ctypes.CDLL(None, use_errno=True)
-    except OSError:  # pragma: no cover - no C library to call
-        return None
-
-
-_LIBC = _libc()
-
-
-def _child_setup(parent: int) -> None:
-    """Runs in the child between fork and exec: die with the parent, and never outlive it if it is already gone."""
-    if _LIBC is not None:
-        _LIBC.prctl(_PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
-    if os.getppid() != parent:
-        os._exit(1)
-
-
 def spawn(argv: list[str], log: IO[bytes], threads: int) -> subprocess.Popen:
-    """Start ``argv``: its own process group, output to ``log``, killed when this thread's process dies."""
-    env = {**os.environ, "OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads)}
-    in_main = threading.current_thread() is threading.main_thread()
-    setup = None
-    if _LIBC is not None and in_main:
-        parent = os.getpid()
+    """Start ``argv``: its own process group, output to ``log``.
 
-        def setup() -> None:
-            _child_setup(parent)
-
+    The child learns this process's PID (:data:`~coworld.sweep.child.PARENT_ENV`); a child that calls
+    :func:`~coworld.sweep.child.die_with_parent` first (every ``coworld`` command of a job does) is killed when the
+    thread calling this function ends, so call it from a thread that waits for the child.
+    """
+    env = {**os.environ, PARENT_ENV: str(os.getpid()), "OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads)}
     return subprocess.Popen(
         argv,
         stdin=subprocess.DEVNULL,
@@ -103,7 +79,6 @@ def spawn(argv: list[str], log: IO[bytes], threads: int) -> subprocess.Popen:
         stderr=subprocess.STDOUT,
         env=env,
         start_new_session=True,
-        preexec_fn=setup,
     )
 
 

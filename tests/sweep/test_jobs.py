@@ -81,7 +81,8 @@ PARENT = textwrap.dedent(
     import sys, time
     from coworld.sweep.jobs import spawn
     with open(sys.argv[1], "ab") as log:
-        child = spawn([sys.executable, "-c", "import time; time.sleep(120)"], log, 1)
+        code = "from coworld.sweep.child import die_with_parent; die_with_parent(); import time; time.sleep(120)"
+        child = spawn([sys.executable, "-c", code], log, 1)
     print(child.pid, flush=True)
     time.sleep(120)
     """
