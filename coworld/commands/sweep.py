@@ -65,7 +65,7 @@ def sweep(
     """Run a grid of runs (pairs x algorithms x seeds), each collect -> train -> eval, in --dir.
 
     \b
-    coworld sweep --table toy --dir sweeps/toy --jobs 2              # the CPU table, ~minutes per run
+    coworld sweep --table toy --dir sweeps/toy --jobs 2              # the CPU table: half an hour on 2 cores
     coworld sweep --table dmc --dir sweeps/dmc --jobs 4 --threads 4  # Table 1 on a GPU machine
     coworld sweep --table dmc --dir /shared/dmc --ray auto --gpus-per-run 0.5
     coworld sweep --pairs walker_walk:walker_uphill --algos coworld,dreamerv2 --seeds 3 --preset tiny --dir D
