@@ -112,6 +112,7 @@ class JobProcess:
         self._step_start = self._start
         self._cpu = 0.0
         self.result: JobResult | None = None
+        self._stopping = False
         job.log.parent.mkdir(parents=True, exist_ok=True)
         self._log = open(job.log, "ab")
         self._write(f"==== {time.strftime('%Y-%m-%d %H:%M:%S')} {job.name}: start on {socket.gethostname()}\n")
@@ -170,6 +171,7 @@ class JobProcess:
         """End the job now: SIGTERM to the running command's process group, SIGKILL after ``grace`` seconds."""
         if self._proc is None:
             return
+        self._stopping = True
         pgid = self._proc.pid
         _signal_group(pgid, signal.SIGTERM)
         deadline = time.time() + grace
@@ -185,6 +187,8 @@ class JobProcess:
         self.job.pid_file.unlink(missing_ok=True)
         wall = time.time() - self._start
         status = "done" if code == 0 else f"FAILED (exit code {code})"
+        if self._stopping:
+            status = "stopped by the sweep"
         self._write(
             f"==== {time.strftime('%H:%M:%S')} {self.job.name}: {status} in {wall:.1f} s ({self._cpu:.1f} CPU s)\n"
         )

@@ -73,6 +73,7 @@ def test_stop_ends_the_running_command_and_its_process_group(tmp_path, process_g
     assert process.poll() is None
     process.stop(grace=5.0)
     assert process.result is not None and process.result.returncode != 0
+    assert "stopped by the sweep" in job.log.read_text()
     assert process_gone(record["pid"]) and not job.pid_file.exists()
 
 
