@@ -81,7 +81,7 @@ class ProgressView:
         text = summary_line(counts, running, collecting)
         if self._bar is not None:
             self._bar.n = counts["done"]
-            self._bar.set_postfix_str(text.split(": ", 1)[1], refresh=True)
+            self._bar.set_postfix_str(text.split(" done, ", 1)[1], refresh=True)  # the bar shows the done count
         elif self.enabled and (time.time() - self._last_line >= self.interval or self._last_counts is None):
             print(text, file=self.stream, flush=True)
             self._last_line = time.time()
