@@ -28,6 +28,8 @@ COMMANDS = {
     "eval": "coworld.commands.evaluate:evaluate",
     "config": "coworld.commands.config:config",
     "viz": "coworld.commands.viz:viz",
+    "sweep": "coworld.commands.sweep:sweep",
+    "report": "coworld.commands.report:report",
 }
 
 

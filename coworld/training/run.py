@@ -8,7 +8,6 @@ folder resumes it; a folder made by different settings is refused rather than si
 from __future__ import annotations
 
 import json
-import os
 import random
 from collections.abc import Mapping
 from pathlib import Path
@@ -19,6 +18,7 @@ import torch
 
 from coworld.config import Config, from_dict, to_dict, to_json
 from coworld.errors import ConfigError, CoworldError
+from coworld.storage import write_text_atomically
 
 
 def seed_everything(seed: int) -> None:
@@ -54,8 +54,10 @@ def preset_warnings(preset: str, device: str) -> list[str]:
     ]
 
 
-RUN_FILES = ("config.json", "run.json")
-"""What describes a run folder; ``config.json`` is written last, so its presence means the folder is set up."""
+RUN_ARTEFACTS = ("checkpoint.pt", "metrics.jsonl", "tb", "source", "source_replay.h5", "eval.json")
+"""What training leaves in a run folder besides its description (``run.json``, then ``config.json``, written
+last): a folder holding any of these but no ``config.json`` was not described by ``coworld train``, or was
+damaged, and is refused rather than resumed. Other files (a sweep's record, notes) are left alone."""
 
 
 def check_run_dir(logdir: str | Path, config: Config, info: Mapping[str, Any]) -> bool:
@@ -63,11 +65,11 @@ def check_run_dir(logdir: str | Path, config: Config, info: Mapping[str, Any]) -
 
     Returns:
         True when the folder already holds this run (the caller resumes from its checkpoint), False when it is
-        absent or new (empty, or only a description left by a run killed while setting up).
+        absent or new (no training artefacts, :data:`RUN_ARTEFACTS`).
 
     Raises:
         CoworldError: the folder holds another run (other settings or tasks), an unreadable description, or
-        files that no ``coworld train`` described (a checkpoint without its config.json, say).
+        training artefacts that no ``config.json`` describes (a checkpoint copied in, say).
     """
     logdir = Path(logdir)
     config_path, info_path = logdir / "config.json", logdir / "run.json"
@@ -75,11 +77,11 @@ def check_run_dir(logdir: str | Path, config: Config, info: Mapping[str, Any]) -
     if logdir.exists() and not logdir.is_dir():
         raise CoworldError(f"{logdir} is a file, not a run folder; pass a new --logdir")
     if not config_path.exists():
-        others = sorted(p.name for p in logdir.iterdir() if p.name not in RUN_FILES) if logdir.exists() else []
-        if others:
+        found = [name for name in RUN_ARTEFACTS if (logdir / name).exists()]
+        if found:
             raise CoworldError(
-                f"{logdir} holds {', '.join(others[:3])}{' ...' if len(others) > 3 else ''} but no config.json, so"
-                " it is not a coworld run folder (or it was damaged); nothing was changed: pass a new --logdir"
+                f"{logdir} holds {', '.join(found)} but no config.json, so it is not a run folder coworld train"
+                " can resume (or it was damaged); nothing was changed: pass a new --logdir"
             )
         return False
     try:
@@ -116,23 +118,9 @@ def prepare_run_dir(logdir: str | Path, config: Config, info: Mapping[str, Any])
     logdir = Path(logdir)
     logdir.mkdir(parents=True, exist_ok=True)
     info = json.loads(json.dumps(dict(info)))
-    write_text_atomic(logdir / "run.json", json.dumps(info, indent=2, sort_keys=True) + "\n")
-    write_text_atomic(logdir / "config.json", to_json(config) + "\n")
+    write_text_atomically(logdir / "run.json", json.dumps(info, indent=2, sort_keys=True) + "\n")
+    write_text_atomically(logdir / "config.json", to_json(config) + "\n")
     return False
-
-
-def write_text_atomic(path: Path, text: str) -> None:
-    """Write ``text`` to a temporary file beside ``path``, flush it to disk, and rename it over ``path``."""
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        with open(tmp, "w") as f:
-            f.write(text)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
 
 
 def load_run(logdir: str | Path) -> tuple[Config, dict[str, Any]]:

@@ -60,7 +60,7 @@ def test_a_folder_with_a_checkpoint_but_no_config_is_refused_and_left_untouched(
     (folder / "metrics.jsonl").write_text("{}\n")
     before = digest(folder)
     code, out = run(train_args(toy_dataset, folder, "--algo", "dreamerv2"))
-    one_line_error(code, out, "checkpoint.pt", "no config.json", "nothing was changed")
+    one_line_error(code, out, "checkpoint.pt, metrics.jsonl but no config.json", "nothing was changed")
     assert "resuming" not in out and digest(folder) == before
 
 

@@ -1,0 +1,21 @@
+"""``coworld report``: tables, a CSV and figures from a sweep folder or any folder of run folders."""
+
+from __future__ import annotations
+
+import click
+
+
+@click.command()
+@click.argument("root", type=click.Path(file_okay=False))
+@click.option("--out", type=click.Path(file_okay=False), default=None, help="Where to write [default: ROOT].")
+def report(root, out) -> None:
+    """Write report.md, results.csv and PNG figures for every run folder under ROOT.
+
+    ROOT is a `coworld sweep` folder (finished or not) or any folder holding runs made by `coworld train`.
+    """
+    from coworld.report import write_report
+
+    made = write_report(root, out)
+    click.echo(f"{len(made.results)} runs, {made.finished} finished")
+    for path in made.files:
+        click.echo(f"wrote {path}")

@@ -1,0 +1,104 @@
+"""``coworld report``: the results of a sweep (or of any run folders) as a table, a CSV and figures.
+
+:func:`write_report` writes into ``out`` (default: the folder itself):
+
+* ``results.csv`` -- one row per run (:mod:`coworld.report.results`);
+* ``report.md`` -- the Table-1-style table with the aggregate row, the ablation and value-check tables, the
+  figures, and which runs are not finished (:mod:`coworld.report.tables`);
+* ``curves-<target>.png``, ``value_check.png``, ``ablation.png`` (:mod:`coworld.report.plots`).
+
+It works on what exists: a partial sweep reports its finished runs and draws the curves of all.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from coworld.report.results import RunResult, load_results, to_csv, write_text
+
+
+@dataclass(frozen=True)
+class Report:
+    results: list[RunResult]
+    files: list[Path]
+
+    @property
+    def finished(self) -> int:
+        return sum(r.final_return is not None for r in self.results)
+
+
+def write_report(root: str | Path, out: str | Path | None = None) -> Report:
+    """Read every run under ``root`` and write the report files into ``out`` (default ``root``)."""
+    from coworld.report import plots, tables
+
+    root = Path(root)
+    out = Path(out) if out is not None else root
+    results = load_results(root)
+    tables.require_scipy()  # the optional dependencies, before anything is written
+    plots.require_matplotlib()
+    out.mkdir(parents=True, exist_ok=True)
+    files = []
+
+    csv_path = out / "results.csv"
+    write_text(csv_path, to_csv(results))
+    files.append(csv_path)
+
+    figures: list[tuple[str, str]] = []
+    for target in dict.fromkeys(r.target for r in results):
+        path = out / f"curves-{target}.png"
+        if plots.learning_curves(results, target, path):
+            figures.append((f"Learning curves, {target}", path.name))
+    if plots.value_check(results, out / "value_check.png"):
+        figures.append(("Value check (Figure 4(b))", "value_check.png"))
+    if plots.ablation_bars(results, out / "ablation.png"):
+        figures.append(("Ablation (Figure 4(a))", "ablation.png"))
+    files += [out / name for _, name in figures]
+
+    md_path = out / "report.md"
+    write_text(md_path, _markdown(root, results, figures))
+    files.insert(1, md_path)
+    return Report(results, files)
+
+
+def _markdown(root: Path, results: list[RunResult], figures: list[tuple[str, str]]) -> str:
+    from coworld.report import tables
+
+    finished = [r for r in results if r.final_return is not None]
+    lines = [
+        f"# Results: {root}",
+        "",
+        f"{len(results)} runs, {len(finished)} finished (with eval.json). Final return: mean ± std over seeds of"
+        " each run's final evaluation; best mean per row in bold; (n=k) where a cell has fewer seeds than the"
+        " others. Aggregate: interquartile mean of normalized scores, (R - random) / (reference - random) per"
+        " target task, over all runs of all tasks, with its 95% stratified-bootstrap confidence interval.",
+        "",
+    ]
+    main = tables.results_table(results)
+    lines += ["## Results", "", main or "No finished runs yet.", ""]
+    ablation = tables.results_table(results, variants=True)
+    if ablation and len({r.variant for r in results if r.algo == "coworld"}) > 1:
+        lines += ["## Ablation (CoWorld terms switched off)", "", ablation, ""]
+    values = tables.value_table(results)
+    if values:
+        lines += [
+            "## Value check",
+            "",
+            "Critic's mean estimate over the evaluation's steps against the discounted return actually received"
+            " from the same steps (Figure 4(b)).",
+            "",
+            values,
+            "",
+        ]
+    if figures:
+        lines += ["## Figures", ""]
+        lines += [f"![{title}]({name})" for title, name in figures]
+        lines.append("")
+    unfinished = [r for r in results if r.final_return is None]
+    if unfinished:
+        lines += ["## Not finished", "", "Runs without eval.json (training, failed, or never evaluated):", ""]
+        for r in unfinished:
+            done = f"{r.updates} updates logged" if r.updates is not None else "nothing logged yet"
+            lines.append(f"- `{r.run_dir}` ({r.label}, seed {r.seed}): {done}")
+        lines.append("")
+    return "\n".join(lines)

@@ -1,0 +1,128 @@
+"""The report's figures (matplotlib, written as PNG without a display).
+
+* learning curves, one figure per pair: evaluation return against target updates, the mean over seeds as a line
+  and mean ± one standard deviation as a band, one line per algorithm (and CoWorld variant);
+* the value check (Figure 4(b)): per pair, the critic's mean estimate next to the true discounted return, per
+  algorithm;
+* the ablation (Figure 4(a)), when the runs have CoWorld variants: mean ± std of the final return per variant.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from coworld.errors import CoworldError
+from coworld.report.results import RunResult, learning_curve
+from coworld.report.tables import ALGO_ORDER
+
+
+def require_matplotlib() -> Any:
+    """matplotlib's ``Figure`` class, or CoworldError with the install hint."""
+    try:
+        from matplotlib.figure import Figure
+    except ModuleNotFoundError:
+        raise CoworldError("the report's plots need matplotlib: pip install 'coworld[report]'") from None
+    return Figure
+
+
+def _figure(width: float, height: float) -> Any:
+    return require_matplotlib()(figsize=(width, height), layout="constrained")
+
+
+def _labels(results: Sequence[RunResult]) -> list[str]:
+    labels = {r.label for r in results}
+    known = [a for a in ALGO_ORDER if a in labels]
+    return known + sorted(labels - set(known))
+
+
+def mean_band(curves: Sequence[Sequence[tuple[int, float]]]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(steps, mean, std) over runs at each step that any run evaluated (a run counts where it has a value)."""
+    by_step: dict[int, list[float]] = {}
+    for curve in curves:
+        for step, value in curve:
+            by_step.setdefault(step, []).append(value)
+    steps = np.array(sorted(by_step))
+    mean = np.array([np.mean(by_step[s]) for s in steps])
+    std = np.array([np.std(by_step[s]) for s in steps])
+    return steps, mean, std
+
+
+def learning_curves(results: Sequence[RunResult], target: str, path: Path) -> bool:
+    """Plot the learning curves of the runs on ``target``; False (nothing written) when none has evaluations."""
+    runs = [r for r in results if r.target == target]
+    fig = _figure(6.0, 4.0)
+    ax = fig.add_subplot()
+    drawn = False
+    for label in _labels(runs):
+        curves = [learning_curve(Path(r.run_dir), r.algo) for r in runs if r.label == label]
+        curves = [c for c in curves if c]
+        if not curves:
+            continue
+        steps, mean, std = mean_band(curves)
+        line = ax.plot(steps, mean, label=f"{label} ({len(curves)} runs)", marker="o" if len(steps) < 12 else None)
+        ax.fill_between(steps, mean - std, mean + std, alpha=0.2, color=line[0].get_color(), linewidth=0)
+        drawn = True
+    if not drawn:
+        return False
+    sources = sorted({r.source for r in runs if r.source})
+    ax.set_title(f"{'/'.join(sources)} → {target}" if sources else target)
+    ax.set_xlabel("target updates")
+    ax.set_ylabel("evaluation return (mean ± std over seeds)")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize="small")
+    fig.savefig(path, dpi=120)
+    return True
+
+
+def value_check(results: Sequence[RunResult], path: Path) -> bool:
+    """Figure 4(b): critic estimate against true discounted return, per pair (subplot) and algorithm."""
+    measured = [r for r in results if r.value_estimate is not None and r.value_true is not None and not r.variant]
+    targets = list(dict.fromkeys(r.target for r in measured))
+    if not targets:
+        return False
+    fig = _figure(max(4.0, 3.2 * len(targets)), 3.6)
+    axes = fig.subplots(1, len(targets), squeeze=False)[0]
+    for ax, target in zip(axes, targets, strict=True):
+        runs = [r for r in measured if r.target == target]
+        labels = _labels(runs)
+        x = np.arange(len(labels))
+        estimate = [np.mean([r.value_estimate for r in runs if r.label == label]) for label in labels]
+        true = [np.mean([r.value_true for r in runs if r.label == label]) for label in labels]
+        ax.bar(x - 0.2, estimate, 0.4, label="value estimate")
+        ax.bar(x + 0.2, true, 0.4, label="true discounted return")
+        ax.set_xticks(x, labels, rotation=30, ha="right", fontsize="small")
+        ax.set_title(target, fontsize="small")
+        ax.grid(axis="y", alpha=0.3)
+    axes[0].legend(fontsize="small")
+    fig.savefig(path, dpi=120)
+    return True
+
+
+def ablation_bars(results: Sequence[RunResult], path: Path) -> bool:
+    """Figure 4(a): final return (mean ± std over seeds) of each CoWorld variant, per pair."""
+    runs = [r for r in results if r.algo == "coworld" and r.final_return is not None]
+    if len({r.variant for r in runs}) < 2:
+        return False
+    targets = list(dict.fromkeys(r.target for r in runs))
+    fig = _figure(max(4.0, 3.6 * len(targets)), 3.6)
+    axes = fig.subplots(1, len(targets), squeeze=False)[0]
+    for ax, target in zip(axes, targets, strict=True):
+        variants = sorted({r.variant for r in runs if r.target == target}, key=lambda v: (v != "", v))
+        values = [[r.final_return for r in runs if r.target == target and r.variant == v] for v in variants]
+        ax.bar(
+            np.arange(len(variants)),
+            [np.mean(v) for v in values],
+            yerr=[np.std(v) for v in values],
+            capsize=4,
+            color=["C0"] + ["C7"] * (len(variants) - 1),
+        )
+        ax.set_xticks(np.arange(len(variants)), [v or "coworld" for v in variants], rotation=30, ha="right")
+        ax.set_ylabel("final return")
+        ax.set_title(target, fontsize="small")
+        ax.grid(axis="y", alpha=0.3)
+    fig.savefig(path, dpi=120)
+    return True

@@ -1,0 +1,268 @@
+"""Read run folders into one tidy record per run, and write them as ``results.csv``.
+
+A run folder is any folder holding a ``run.json`` with an ``algo`` and a ``target`` (what ``coworld train``
+writes), inside a sweep or not. Its final result is ``eval.json`` (written by ``coworld eval``); a run without one
+is listed with an empty return (still training, or never evaluated) and still has a learning curve. A sweep's
+runs also hold ``sweep-run.json`` with their variant name and pair; elsewhere the variant is read from the config
+(the CoWorld terms switched off) and the pair is the target alone for the baselines.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+import os
+from collections.abc import Iterable, Mapping
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+from coworld import envs
+from coworld.errors import CoworldError, UnknownTaskError
+
+ABLATION_SWITCHES = (("align", "no-align"), ("reward_relabel", "no-relabel"), ("value_reg", "no-value-reg"))
+"""CoWorld config switch -> the variant name of the run with that term off."""
+
+
+@dataclass(frozen=True)
+class RunResult:
+    """One run: what it is and what it measured (None where not measured)."""
+
+    run_dir: str
+    algo: str
+    variant: str
+    """'' for the algorithm as configured; e.g. 'no-align' for CoWorld without Eq. 3."""
+    source: str | None
+    target: str
+    seed: int
+    final_return: float | None
+    """Mean return of the final evaluation (eval.json)."""
+    return_std: float | None
+    episodes: int | None
+    success_rate: float | None
+    value_estimate: float | None
+    """Critic's mean estimate over the evaluation's steps (Figure 4(b))."""
+    value_true: float | None
+    """Mean discounted return actually received from the same steps."""
+    normalized_score: float | None
+    """(final_return - random_return) / (reference_return - random_return) of the target task."""
+    updates: int | None
+    """Target-agent updates logged."""
+    wall_time_s: float | None
+    """Training time logged in metrics.jsonl (summed over resumed segments)."""
+
+    @property
+    def pair(self) -> str:
+        return f"{self.source}->{self.target}" if self.source else self.target
+
+    @property
+    def label(self) -> str:
+        """The column of the run in tables: algorithm, then variant."""
+        return f"{self.algo} ({self.variant})" if self.variant else self.algo
+
+
+CSV_COLUMNS = (
+    "pair",
+    "source",
+    "target",
+    "algo",
+    "variant",
+    "seed",
+    "final_return",
+    "return_std",
+    "episodes",
+    "success_rate",
+    "value_estimate",
+    "value_true",
+    "normalized_score",
+    "updates",
+    "wall_time_s",
+    "run_dir",
+)
+
+
+def find_run_dirs(root: str | Path) -> list[Path]:
+    """Every run folder under ``root`` (``root`` itself included), sorted."""
+    root = Path(root)
+    if not root.is_dir():
+        raise CoworldError(f"{root} is not a folder; pass a sweep folder or a folder of runs made by `coworld train`")
+    found = []
+    for path in sorted(root.rglob("run.json")):
+        try:
+            info = json.loads(path.read_text())
+        except (OSError, ValueError):
+            continue
+        if isinstance(info, dict) and "algo" in info and "target" in info:  # not a collector's run folder
+            found.append(path.parent)
+    return found
+
+
+def read_records(run_dir: Path) -> list[dict[str, Any]]:
+    """The records of ``metrics.jsonl``; a line cut short by a kill is skipped."""
+    path = run_dir / "metrics.jsonl"
+    if not path.exists():
+        return []
+    records = []
+    for line in path.read_text().splitlines():
+        try:
+            records.append(json.loads(line))
+        except ValueError:
+            continue
+    return records
+
+
+def target_eval_return(record: Mapping[str, Any], algo: str) -> float | None:
+    """The target agent's evaluation return in one metrics record, or None.
+
+    A CoWorld run folder also logs its source agent's evaluations in the source task, under the same
+    ``eval/return`` key but without the value check; the target agent's evaluations carry the value check.
+    """
+    value = record.get("eval/return")
+    if value is None:
+        return None
+    if algo == "coworld" and "eval/value_estimate" not in record:
+        return None
+    return float(value)
+
+
+def learning_curve(run_dir: Path, algo: str, records: list[dict[str, Any]] | None = None) -> list[tuple[int, float]]:
+    """(target updates, evaluation return) of each evaluation during training, in order."""
+    records = read_records(run_dir) if records is None else records
+    curve = []
+    for record in records:
+        value = target_eval_return(record, algo)
+        if value is not None and math.isfinite(value):
+            curve.append((int(record["step"]), value))
+    return curve
+
+
+def _updates(records: list[dict[str, Any]], algo: str) -> int | None:
+    steps = [
+        int(r["step"])
+        for r in records
+        if algo != "coworld" or any(key.startswith("target/") for key in r) or target_eval_return(r, algo) is not None
+    ]
+    return max(steps) if steps else None
+
+
+def _wall_time(records: list[dict[str, Any]]) -> float | None:
+    """Sum over the run's segments (a resumed run's logger restarts its clock) of each segment's last time."""
+    total, last = 0.0, None
+    for record in records:
+        t = record.get("time")
+        if t is None:
+            continue
+        if last is not None and t < last:
+            total += last
+        last = float(t)
+    return None if last is None else total + last
+
+
+def _variant(run_dir: Path, algo: str) -> tuple[str, str | None]:
+    """(variant, pair source) from sweep-run.json, else the CoWorld switches in config.json."""
+    record_path = run_dir / "sweep-run.json"
+    if record_path.exists():
+        try:
+            record = json.loads(record_path.read_text())
+            return str(record.get("variant", "")), record.get("source")
+        except ValueError:
+            pass
+    if algo != "coworld":
+        return "", None
+    try:
+        config = json.loads((run_dir / "config.json").read_text())
+    except (OSError, ValueError):
+        return "", None
+    switches = config.get("coworld", {})
+    off = [name for key, name in ABLATION_SWITCHES if switches.get(key) is False]
+    return "+".join(off), None
+
+
+def normalized(task: str, value: float | None) -> float | None:
+    """(value - random_return) / (reference_return - random_return) of ``task``; None when not defined."""
+    if value is None:
+        return None
+    try:
+        spec = envs.task_spec(task)
+    except UnknownTaskError:
+        return None
+    if spec.reference_return is None or spec.random_return is None or spec.reference_return == spec.random_return:
+        return None
+    return (value - spec.random_return) / (spec.reference_return - spec.random_return)
+
+
+def _mean(values: Any) -> float | None:
+    if not values:
+        return None
+    return float(sum(values) / len(values))
+
+
+def load_result(run_dir: Path) -> RunResult:
+    """The :class:`RunResult` of one run folder."""
+    info = json.loads((run_dir / "run.json").read_text())
+    algo, target = str(info["algo"]), str(info["target"])
+    try:
+        seed = int(json.loads((run_dir / "config.json").read_text())["seed"])
+    except (OSError, ValueError, KeyError):
+        seed = -1
+    variant, pair_source = _variant(run_dir, algo)
+    source = info.get("source") or pair_source
+    final = std = success = estimate = true = None
+    episodes = None
+    try:
+        result = json.loads((run_dir / "eval.json").read_text())
+        returns = [float(r) for r in result["returns"]]
+        final, episodes = _mean(returns), len(returns)
+        std = float(result.get("std", 0.0))
+        success = result.get("success_rate")
+        estimate = _mean(result.get("value_estimate") or [])
+        true = _mean(result.get("value_true") or [])
+    except (OSError, ValueError, KeyError, TypeError):
+        pass
+    records = read_records(run_dir)
+    return RunResult(
+        run_dir=str(run_dir),
+        algo=algo,
+        variant=variant,
+        source=source,
+        target=target,
+        seed=seed,
+        final_return=final,
+        return_std=std,
+        episodes=episodes,
+        success_rate=None if success is None else float(success),
+        value_estimate=estimate,
+        value_true=true,
+        normalized_score=normalized(target, final),
+        updates=_updates(records, algo),
+        wall_time_s=_wall_time(records),
+    )
+
+
+def load_results(root: str | Path) -> list[RunResult]:
+    """Every run under ``root``; raises CoworldError when there is none."""
+    dirs = find_run_dirs(root)
+    if not dirs:
+        raise CoworldError(f"no run folders (with a run.json) under {root}; run `coworld sweep` or `coworld train`")
+    return [load_result(d) for d in dirs]
+
+
+def to_csv(results: Iterable[RunResult]) -> str:
+    """One row per run, columns :data:`CSV_COLUMNS`; empty cells where nothing was measured."""
+    out = io.StringIO()
+    writer = csv.DictWriter(out, fieldnames=CSV_COLUMNS, lineterminator="\n")
+    writer.writeheader()
+    for result in results:
+        row = asdict(result)
+        row["pair"] = result.pair
+        writer.writerow({key: "" if row[key] is None else row[key] for key in CSV_COLUMNS})
+    return out.getvalue()
+
+
+def write_text(path: Path, text: str) -> None:
+    """Write a whole file: a temporary name in the same folder, then renamed."""
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)

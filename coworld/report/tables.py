@@ -1,0 +1,187 @@
+"""The report's tables: Table-1-style results (mean ± std over seeds, best per row in bold), the aggregate row,
+the ablation and the value check, as markdown.
+
+The aggregate is the interquartile mean (IQM) of normalized scores over every run of every task, with a 95%
+stratified-bootstrap confidence interval (Agarwal et al., 2021: runs are resampled with replacement within each
+task, the tasks kept). It is computed with SciPy's ``bootstrap``, one sample per task, which resamples each sample
+independently: the stratified bootstrap of ``rliable``'s ``get_interval_estimates`` (percentile intervals) with
+``scipy.stats.trim_mean(scores, 0.25)`` as the IQM, as ``rliable.metrics.aggregate_iqm`` computes it, and unlike
+rliable's runs x tasks matrix it allows a different number of runs per task (a partial sweep).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from coworld.errors import CoworldError
+from coworld.report.results import RunResult
+
+ALGO_ORDER = ("curl", "curl-cql", "dreamerv2", "coworld")
+"""Columns in the paper's order; other algorithms follow."""
+
+
+def require_scipy() -> Any:
+    """``scipy.stats``, or CoworldError with the install hint."""
+    try:
+        from scipy import stats
+    except ModuleNotFoundError:
+        raise CoworldError("the report's statistics need SciPy: pip install 'coworld[report]'") from None
+    return stats
+
+
+def iqm(scores: np.ndarray, axis: int | None = None) -> np.ndarray:
+    """Interquartile mean: the mean of the middle 50% (25% trimmed from each end)."""
+    return require_scipy().trim_mean(scores, 0.25, axis=axis)
+
+
+@dataclass(frozen=True)
+class Interval:
+    point: float
+    low: float
+    high: float
+    runs: int
+    tasks: int
+
+
+def iqm_interval(
+    scores_per_task: Sequence[Sequence[float]], *, confidence: float = 0.95, resamples: int = 10_000, seed: int = 0
+) -> Interval:
+    """IQM over all runs of all tasks and its stratified-bootstrap confidence interval (percentile method).
+
+    Args:
+        scores_per_task: the normalized scores of each task's runs (at least one run per task).
+    """
+    stats = require_scipy()
+    tasks = [np.asarray(scores, dtype=np.float64) for scores in scores_per_task if len(scores)]
+    if not tasks:
+        raise ValueError("no scores")
+    everything = np.concatenate(tasks)
+    point = float(iqm(everything))
+    varied = [t for t in tasks if len(t) > 1]  # a task of one run resamples to itself: a constant
+    fixed = np.concatenate([t for t in tasks if len(t) == 1] or [np.empty(0)])
+    if not varied:
+        return Interval(point, point, point, len(everything), len(tasks))
+
+    def statistic(*samples: np.ndarray, axis: int = -1) -> np.ndarray:
+        batch = samples[0].shape[:-1]
+        constant = np.broadcast_to(fixed, (*batch, len(fixed)))
+        return iqm(np.concatenate([*samples, constant], axis=-1), axis=-1)
+
+    result = stats.bootstrap(
+        varied,
+        statistic,
+        n_resamples=resamples,
+        confidence_level=confidence,
+        method="percentile",
+        vectorized=True,
+        rng=np.random.default_rng(seed),
+    )
+    ci = result.confidence_interval
+    return Interval(point, float(ci.low), float(ci.high), len(everything), len(tasks))
+
+
+def _order(labels: Iterable[str]) -> list[str]:
+    labels = set(labels)
+    known = [a for a in ALGO_ORDER if a in labels]
+    return known + sorted(labels - set(known))
+
+
+def _rows(results: Sequence[RunResult]) -> list[str]:
+    return list(dict.fromkeys(r.target for r in results))
+
+
+def _pair_label(results: Sequence[RunResult], target: str) -> str:
+    sources = sorted({r.source for r in results if r.target == target and r.source})
+    return f"{'/'.join(sources)} → {target}" if sources else target
+
+
+def _fmt(value: float) -> str:
+    return f"{value:.1f}"
+
+
+def _cell(values: Sequence[float], seeds_expected: int) -> str:
+    text = f"{_fmt(float(np.mean(values)))} ± {_fmt(float(np.std(values)))}"
+    if len(values) != seeds_expected:
+        text += f" (n={len(values)})"
+    return text
+
+
+def results_table(results: Sequence[RunResult], *, variants: bool = False) -> str:
+    """Rows = pairs (by target), columns = algorithms: mean ± std of the final return over seeds, best in bold.
+
+    Only finished runs (with eval.json) count. ``variants=False`` takes the algorithms as configured (variant '')
+    and adds the IQM aggregate row; ``variants=True`` gives the ablation: CoWorld's variants as columns.
+    """
+    finished = [r for r in results if r.final_return is not None]
+    if variants:
+        chosen = [r for r in finished if r.algo == "coworld"]
+        columns = [""] + sorted({r.variant for r in chosen} - {""})
+        column_of = {c: (f"coworld ({c})" if c else "coworld") for c in columns}
+
+        def key(r: RunResult) -> str:
+            return r.variant
+
+    else:
+        chosen = [r for r in finished if not r.variant]
+        columns = _order({r.algo for r in chosen})
+        column_of = {c: c for c in columns}
+
+        def key(r: RunResult) -> str:
+            return r.algo
+
+    if not chosen:
+        return ""
+    cells: dict[tuple[str, str], list[float]] = {}
+    for r in chosen:
+        cells.setdefault((r.target, key(r)), []).append(float(r.final_return))  # type: ignore[arg-type]
+    seeds = max(len(v) for v in cells.values())
+    lines = [
+        "| pair | " + " | ".join(column_of[c] for c in columns) + " |",
+        "|---|" + "---:|" * len(columns),
+    ]
+    for target in _rows(chosen):
+        means = {c: float(np.mean(cells[(target, c)])) for c in columns if (target, c) in cells}
+        best = max(means.values()) if len(means) > 1 else None
+        row = []
+        for c in columns:
+            if (target, c) not in cells:
+                row.append("—")
+                continue
+            text = _cell(cells[(target, c)], seeds)
+            row.append(f"**{text}**" if best is not None and means[c] == best else text)
+        lines.append(f"| {_pair_label(results, target)} | " + " | ".join(row) + " |")
+    if not variants:
+        row = []
+        for c in columns:
+            per_task = [
+                [r.normalized_score for r in chosen if r.algo == c and r.target == t and r.normalized_score is not None]
+                for t in _rows(chosen)
+            ]
+            per_task = [scores for scores in per_task if scores]
+            if not per_task:
+                row.append("—")
+                continue
+            ci = iqm_interval(per_task)
+            row.append(f"{ci.point:.2f} [{ci.low:.2f}, {ci.high:.2f}]")
+        lines.append("| IQM normalized score [95% CI] | " + " | ".join(row) + " |")
+    return "\n".join(lines)
+
+
+def value_table(results: Sequence[RunResult]) -> str:
+    """Figure 4(b)'s check as a table: mean critic estimate against the true discounted return, per pair and
+    algorithm (finished runs that measured it)."""
+    measured = [r for r in results if r.value_estimate is not None and r.value_true is not None and not r.variant]
+    if not measured:
+        return ""
+    lines = ["| pair | algorithm | value estimate | true discounted return | runs |", "|---|---|---:|---:|---:|"]
+    for target in _rows(measured):
+        for algo in _order({r.algo for r in measured if r.target == target}):
+            runs = [r for r in measured if r.target == target and r.algo == algo]
+            estimate = float(np.mean([r.value_estimate for r in runs]))
+            true = float(np.mean([r.value_true for r in runs]))
+            lines.append(f"| {_pair_label(results, target)} | {algo} | {estimate:.2f} | {true:.2f} | {len(runs)} |")
+    return "\n".join(lines)

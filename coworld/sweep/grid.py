@@ -1,0 +1,421 @@
+"""What a sweep runs: a grid of runs (pairs x algorithms x seeds x CoWorld variants), the named grids of the paper,
+and the CPU-sized toy table.
+
+A :class:`SweepSpec` is pure data. :meth:`SweepSpec.runs` lists its :class:`Run` s; the baselines (offline
+DreamerV2, CURL, CURL+CQL) learn from the target dataset alone, so pairs that share a target share their baseline
+runs. Every target task gets one dataset, made as :class:`DataSpec` says and shared by all runs on that target.
+
+Named grids (:data:`TABLES`):
+
+* ``dmc`` -- the paper's Table 1: the five DMC pairs it reports (walker walk -> downhill, uphill, nofoot; cheetah
+  run -> downhill, nopaw), the four algorithms, 3 seeds, the ``paper`` preset, DreamerV2 medium-replay datasets.
+* ``metaworld`` -- Table 2: its five Meta-World pairs, otherwise as ``dmc``.
+* ``ablation`` -- Figure 4(a): CoWorld as configured and with each of its three terms switched off in turn
+  (:data:`ABLATION`), offline DreamerV2 as the reference, on drawer close -> button press (the one ablation task
+  the paper text names, its Figure 9(b)).
+* ``toy`` -- the CPU-sized table: see :func:`toy_table`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from coworld import envs
+from coworld.config import make_config
+from coworld.errors import ConfigError, CoworldError
+from coworld.training.train import ALGOS
+
+COLLECT_POLICIES = ("dreamerv2", "random")
+QUALITIES = ("medium-replay", "medium", "expert")
+
+
+@dataclass(frozen=True)
+class DataSpec:
+    """How the dataset of each target task is made: the options of one ``coworld collect``."""
+
+    policy: str = "dreamerv2"
+    """'dreamerv2' (DreamerV2 learns online and is recorded) or 'random' (uniform actions)."""
+    quality: str = "medium-replay"
+    """dreamerv2 only: medium-replay (the paper's), medium or expert."""
+    episodes: int | None = None
+    """Collect exactly this many episodes (random: required unless ``max_steps``)."""
+    max_steps: int | None = None
+    """Collect exactly this many steps (dreamerv2: at most, it also stops at its return goal)."""
+    overrides: tuple[str, ...] = ()
+    """dreamerv2 only: ``--set`` of the collector (the sweep's preset is its preset)."""
+    seed: int = 0
+    """Seed of the collection."""
+
+    @property
+    def label(self) -> str:
+        """The dataset's name after the task: its quality."""
+        return "random" if self.policy == "random" else self.quality
+
+    def check(self) -> None:
+        if self.policy not in COLLECT_POLICIES:
+            raise ConfigError(f"data policy must be one of {', '.join(COLLECT_POLICIES)}, not {self.policy!r}")
+        if self.policy == "dreamerv2" and self.quality not in QUALITIES:
+            raise ConfigError(f"data quality must be one of {', '.join(QUALITIES)}, not {self.quality!r}")
+        if self.policy == "random":
+            if (self.episodes is None) == (self.max_steps is None):
+                raise ConfigError("a random dataset needs exactly one of data episodes and data max_steps")
+            if self.overrides:
+                raise ConfigError("data set= overrides are for the dreamerv2 collector, not random collection")
+        for name in ("episodes", "max_steps"):
+            value = getattr(self, name)
+            if value is not None and value < 1:
+                raise ConfigError(f"data {name} must be at least 1, got {value}")
+
+
+@dataclass(frozen=True)
+class Run:
+    """One training run of a sweep: an algorithm on a target (CoWorld also with its source), one seed."""
+
+    algo: str
+    source: str | None
+    """CoWorld's online source task; None for the baselines."""
+    target: str
+    seed: int
+    variant: str = ""
+    """Name of the CoWorld variant ('' = as configured)."""
+
+    @property
+    def name(self) -> str:
+        """Run folder name, e.g. ``coworld-no-align-toy_reach-toy_reach_shifted-s0`` or ``curl-walker_uphill-s1``."""
+        algo = f"{self.algo}-{self.variant}" if self.variant else self.algo
+        pair = f"{self.source}-{self.target}" if self.source else self.target
+        return f"{algo}-{pair}-s{self.seed}"
+
+
+@dataclass(frozen=True)
+class SweepSpec:
+    """A grid of runs and the settings every run shares. Saved as ``sweep.json`` in the sweep's folder."""
+
+    pairs: tuple[tuple[str, str], ...]
+    """(source, target) task pairs."""
+    algos: tuple[str, ...] = ALGOS
+    seeds: tuple[int, ...] = (0, 1, 2)
+    variants: tuple[tuple[str, tuple[str, ...]], ...] = (("", ()),)
+    """CoWorld variants: (name, config overrides); '' is CoWorld as configured. Baselines run once."""
+    preset: str = "paper"
+    overrides: tuple[str, ...] = ()
+    """``--set`` given to every training run."""
+    data: DataSpec = field(default_factory=DataSpec)
+    eval_episodes: int = 10
+    """Episodes of the final evaluation of each run (the paper: 10)."""
+
+    def check(self) -> SweepSpec:
+        """Raise CoworldError with one line if anything in the grid is invalid; returns self."""
+        if not self.pairs:
+            raise CoworldError("the sweep has no pairs; pass --pairs SOURCE:TARGET[,...] or --table")
+        for source, target in self.pairs:
+            s, t = envs.task_spec(source), envs.task_spec(target)
+            if s.action_size != t.action_size:
+                raise CoworldError(
+                    f"pair {source}:{target}: source has {s.action_size} action dimensions, target {t.action_size}"
+                )
+        if not self.algos:
+            raise CoworldError(f"the sweep has no algorithms; choose from {', '.join(ALGOS)}")
+        for algo in self.algos:
+            if algo not in ALGOS:
+                raise CoworldError(f"unknown algorithm {algo!r}; choose from {', '.join(ALGOS)}")
+        if not self.seeds or len(set(self.seeds)) != len(self.seeds):
+            raise CoworldError(f"seeds must be distinct and at least one, got {list(self.seeds)}")
+        names = [name for name, _ in self.variants]
+        if not names or len(set(names)) != len(names):
+            raise CoworldError(f"variant names must be distinct and at least one, got {names}")
+        for name in names:
+            if name and not name.replace("-", "").replace("_", "").isalnum():
+                raise CoworldError(f"variant name {name!r}: use letters, digits, '-' and '_' only")
+        if self.eval_episodes < 1:
+            raise CoworldError(f"eval episodes must be at least 1, got {self.eval_episodes}")
+        self.data.check()
+        for _, extra in self.variants:  # every run's config must build (unknown keys, bad values)
+            make_config(self.preset, [*self.overrides, *extra])
+        return self
+
+    def runs(self) -> list[Run]:
+        """Every run, in a stable order: pair, algorithm, variant, seed; a baseline once per target."""
+        runs: list[Run] = []
+        seen: set[Run] = set()
+        for source, target in self.pairs:
+            for algo in self.algos:
+                variants = [name for name, _ in self.variants] if algo == "coworld" else [""]
+                for variant in variants:
+                    for seed in self.seeds:
+                        run = Run(algo, source if algo == "coworld" else None, target, seed, variant)
+                        if run not in seen:
+                            seen.add(run)
+                            runs.append(run)
+        return runs
+
+    def targets(self) -> list[str]:
+        """Target tasks, each once, in pair order (one dataset each)."""
+        return list(dict.fromkeys(target for _, target in self.pairs))
+
+    def run_overrides(self, run: Run) -> list[str]:
+        """The ``--set`` of one run: the sweep's, then its variant's."""
+        return [*self.overrides, *dict(self.variants)[run.variant]]
+
+    def to_dict(self) -> dict[str, Any]:
+        return json.loads(json.dumps(dataclasses.asdict(self)))
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> SweepSpec:
+        return cls(
+            pairs=tuple((s, t) for s, t in data["pairs"]),
+            algos=tuple(data["algos"]),
+            seeds=tuple(int(s) for s in data["seeds"]),
+            variants=tuple((name, tuple(extra)) for name, extra in data["variants"]),
+            preset=data["preset"],
+            overrides=tuple(data["overrides"]),
+            data=DataSpec(**{**data["data"], "overrides": tuple(data["data"]["overrides"])}),
+            eval_episodes=int(data["eval_episodes"]),
+        )
+
+
+# -- the named grids ------------------------------------------------------------------------------------------------
+
+TABLE1_PAIRS = (
+    ("walker_walk", "walker_downhill"),
+    ("walker_walk", "walker_uphill"),
+    ("walker_walk", "walker_nofoot"),
+    ("cheetah_run", "cheetah_downhill"),
+    ("cheetah_run", "cheetah_nopaw"),
+)
+"""The five DMC pairs of the paper's Table 1 (cheetah run -> uphill is registered but not in the table)."""
+
+TABLE2_PAIRS = (
+    ("mw_window_close", "mw_door_close"),
+    ("mw_handle_press", "mw_button_press_topdown"),
+    ("mw_drawer_close", "mw_handle_press"),
+    ("mw_drawer_close", "mw_button_press"),
+    ("mw_stick_push", "mw_assembly"),
+)
+"""The five Meta-World pairs of the paper's Table 2."""
+
+ABLATION: tuple[tuple[str, tuple[str, ...]], ...] = (
+    ("", ()),
+    ("no-align", ("coworld.align=false",)),
+    ("no-relabel", ("coworld.reward_relabel=false",)),
+    ("no-value-reg", ("coworld.value_reg=false",)),
+)
+"""Figure 4(a): CoWorld as configured, then with each domain-collaborative term off in turn."""
+
+TOY_DATA = DataSpec(policy="random", episodes=20)
+"""The toy target dataset: 20 episodes (1,000 steps) of uniform random actions in toy_reach_shifted."""
+
+TOY_OVERRIDES = (
+    "coworld.pretrain_steps=2000",
+    "coworld.iterations=5",
+    "coworld.target_updates=300",
+    "coworld.source_updates=100",
+    "train.eval_episodes=5",
+    "curl.updates=3000",
+    "curl.eval_every=600",
+    "curl.checkpoint_every=600",
+    "curl.eval_episodes=5",
+)
+"""The toy schedule on the ``tiny`` preset (see :func:`toy_table`)."""
+
+
+def toy_table() -> SweepSpec:
+    """The CPU-sized table: toy_reach -> toy_reach_shifted, the four algorithms, 3 seeds, ``tiny`` preset.
+
+    Design. The target dataset is deliberately too poor to learn from alone: 20 episodes (1,000 steps) of uniform
+    random actions in toy_reach_shifted, where the constant drift towards -x carries an aimless dot away from the
+    goal (random return 2.3 against the scripted expert's 45.6), so the dataset barely shows the goal region or
+    what reaching it is worth. The online source, toy_reach, has the same goal, reward and action meaning under
+    other colours and without the drift; its agent, interacting, sees the goal region as often as it likes. So
+    what an offline agent lacks is exactly what the source knows: CoWorld's alignment (Eq. 3) maps target frames
+    into the source's latent space, its relabelled reward (Eqs. 4-5) and the source critic's cap on the target
+    critic (Eq. 6) carry the source's values over.
+
+    Size. Every algorithm gets the same target budget: 5 iterations of 300 target updates (1,500 updates), the
+    offline DreamerV2 the same 1,500 updates, CURL and CURL+CQL 3,000 of their cheaper updates. CoWorld's source
+    pretrains for 2,000 environment steps and makes 100 updates per iteration. Each run ends with a 10-episode
+    evaluation. Measured on 2 shared CPU cores (README): one seed of all four algorithms takes about 16
+    CPU-minutes, CoWorld's run 7 of them; the 3 seeds fit in half an hour with ``--jobs 2``.
+    """
+    return SweepSpec(
+        pairs=(("toy_reach", "toy_reach_shifted"),),
+        algos=ALGOS,
+        seeds=(0, 1, 2),
+        preset="tiny",
+        overrides=TOY_OVERRIDES,
+        data=TOY_DATA,
+        eval_episodes=10,
+    )
+
+
+TABLES: dict[str, Any] = {
+    "toy": toy_table,
+    "dmc": lambda: SweepSpec(pairs=TABLE1_PAIRS),
+    "metaworld": lambda: SweepSpec(pairs=TABLE2_PAIRS),
+    "ablation": lambda: SweepSpec(
+        pairs=(("mw_drawer_close", "mw_button_press"),), algos=("coworld", "dreamerv2"), variants=ABLATION
+    ),
+}
+"""Named grids: name -> function returning its :class:`SweepSpec`."""
+
+
+def named_table(name: str) -> SweepSpec:
+    if name not in TABLES:
+        raise CoworldError(f"unknown table {name!r}; choose from {', '.join(TABLES)}")
+    return TABLES[name]()
+
+
+# -- grids from the command line and TOML files ---------------------------------------------------------------------
+
+
+def parse_pairs(text: str) -> tuple[tuple[str, str], ...]:
+    """``"a:b,c:d"`` -> ``(("a", "b"), ("c", "d"))``; task names are checked."""
+    pairs = []
+    for item in (part.strip() for part in text.split(",")):
+        if not item:
+            continue
+        source, sep, target = item.partition(":")
+        if not sep or not source or not target:
+            raise CoworldError(f"bad pair {item!r}: write SOURCE:TARGET, e.g. walker_walk:walker_uphill")
+        envs.task_spec(source), envs.task_spec(target)
+        pairs.append((source, target))
+    if not pairs:
+        raise CoworldError("--pairs is empty; write SOURCE:TARGET[,SOURCE:TARGET...]")
+    return tuple(pairs)
+
+
+def parse_list(text: str) -> tuple[str, ...]:
+    return tuple(part.strip() for part in text.split(",") if part.strip())
+
+
+def seeds_from(value: int | Sequence[int]) -> tuple[int, ...]:
+    """A count N -> seeds 0..N-1; a list -> those seeds."""
+    if isinstance(value, bool):
+        raise CoworldError(f"seeds must be a count or a list of integers, got {value!r}")
+    if isinstance(value, int):
+        if value < 1:
+            raise CoworldError(f"--seeds must be at least 1, got {value}")
+        return tuple(range(value))
+    try:
+        return tuple(int(seed) for seed in value)
+    except (TypeError, ValueError):
+        raise CoworldError(f"seeds must be a count or a list of integers, got {value!r}") from None
+
+
+_FILE_KEYS = {"table", "pairs", "algos", "seeds", "variants", "preset", "set", "eval_episodes", "data", "ablation"}
+_DATA_KEYS = {f.name for f in dataclasses.fields(DataSpec)} - {"overrides"} | {"set"}
+
+
+def read_grid_file(path: str | Path) -> dict[str, Any]:
+    """Read a TOML grid file into keyword arguments of :func:`build_spec` (see the README for its keys)."""
+    path = Path(path)
+    import tomllib
+    try:
+        data = tomllib.loads(path.read_text())
+    except FileNotFoundError:
+        raise CoworldError(f"no grid file at {path}") from None
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as err:
+        raise CoworldError(f"{path} is not valid TOML ({err})") from None
+    unknown = set(data) - _FILE_KEYS
+    if unknown:
+        raise CoworldError(f"{path}: unknown keys {sorted(unknown)}; valid keys: {', '.join(sorted(_FILE_KEYS))}")
+    out: dict[str, Any] = {}
+    try:
+        if "table" in data:
+            out["table"] = str(data["table"])
+        if "pairs" in data:
+            out["pairs"] = parse_pairs(",".join(data["pairs"]))
+        if "algos" in data:
+            out["algos"] = tuple(str(algo) for algo in data["algos"])
+        if "seeds" in data:
+            out["seeds"] = seeds_from(data["seeds"])
+        if "variants" in data:
+            out["variants"] = tuple((str(name), tuple(map(str, extra))) for name, extra in data["variants"].items())
+        if "ablation" in data:
+            out["ablation"] = bool(data["ablation"])
+        if "preset" in data:
+            out["preset"] = str(data["preset"])
+        if "set" in data:
+            out["overrides"] = tuple(str(item) for item in data["set"])
+        if "eval_episodes" in data:
+            out["eval_episodes"] = int(data["eval_episodes"])
+        if "data" in data:
+            bad = set(data["data"]) - _DATA_KEYS
+            if bad:
+                raise CoworldError(f"{path}: unknown [data] keys {sorted(bad)}; valid: {', '.join(sorted(_DATA_KEYS))}")
+            fields = dict(data["data"])
+            if "set" in fields:
+                fields["overrides"] = tuple(str(item) for item in fields.pop("set"))
+            out["data"] = fields
+    except (TypeError, ValueError, AttributeError) as err:
+        raise CoworldError(f"{path}: a value has the wrong type ({err})") from None
+    return out
+
+
+def build_spec(
+    *,
+    table: str | None = None,
+    ablation: bool = False,
+    pairs: tuple[tuple[str, str], ...] | None = None,
+    algos: tuple[str, ...] | None = None,
+    seeds: tuple[int, ...] | None = None,
+    variants: tuple[tuple[str, tuple[str, ...]], ...] | None = None,
+    preset: str | None = None,
+    overrides: Iterable[str] = (),
+    eval_episodes: int | None = None,
+    data: Mapping[str, Any] | None = None,
+) -> SweepSpec:
+    """A checked grid: a named table (or ``ablation``'s) as the base, then every given value replacing its field.
+
+    ``overrides`` are added after the table's own. ``ablation`` with a table adds Figure 4(a)'s variants to it;
+    alone it is the ``ablation`` table. Without a table, ``pairs`` is required and the defaults of
+    :class:`SweepSpec` fill the rest.
+    """
+    if table is not None:
+        spec = named_table(table)
+    elif ablation:
+        spec = named_table("ablation")
+    else:
+        if pairs is None:
+            raise CoworldError("say what to run: --table toy|dmc|metaworld, --ablation, --pairs or --grid FILE")
+        spec = SweepSpec(pairs=pairs)
+    if ablation:
+        spec = dataclasses.replace(spec, variants=ABLATION)
+    changes: dict[str, Any] = {}
+    for name, value in (
+        ("pairs", pairs),
+        ("algos", algos),
+        ("seeds", seeds),
+        ("variants", variants),
+        ("preset", preset),
+        ("eval_episodes", eval_episodes),
+    ):
+        if value is not None:
+            changes[name] = value
+    extra = tuple(overrides)
+    if extra:
+        changes["overrides"] = (*spec.overrides, *extra)
+    if data:
+        try:
+            changes["data"] = dataclasses.replace(spec.data, **data)
+        except TypeError as err:
+            raise CoworldError(f"bad data setting ({err})") from None
+    return dataclasses.replace(spec, **changes).check()
+
+
+def first_difference(saved: Mapping[str, Any], now: Mapping[str, Any], prefix: str = "") -> str:
+    """The first key where two spec dicts differ, as 'key: saved X, now Y' ('' when equal)."""
+    for key in sorted(set(saved) | set(now)):
+        a, b = saved.get(key), now.get(key)
+        if isinstance(a, Mapping) and isinstance(b, Mapping):
+            found = first_difference(a, b, f"{prefix}{key}.")
+            if found:
+                return found
+        elif a != b:
+            return f"{prefix}{key}: saved {a!r}, now {b!r}"
+    return ""

@@ -1,0 +1,208 @@
+"""``coworld report`` on hand-made run folders with known numbers."""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from coworld import envs
+from coworld.cli import main
+from coworld.report import results as results_module
+from coworld.report import write_report
+from coworld.report.plots import mean_band
+from coworld.report.results import find_run_dirs, learning_curve, load_result, load_results
+from coworld.report.tables import iqm_interval, results_table
+
+
+@pytest.fixture
+def score_scale(monkeypatch):
+    """Both toy tasks scored from 0 (random) to 100 (reference), so normalized scores are return / 100."""
+    real = envs.task_spec
+
+    def fake(name: str):
+        return replace(real(name), random_return=0.0, reference_return=100.0)
+
+    monkeypatch.setattr(results_module.envs, "task_spec", fake)
+
+
+def make_run(
+    root: Path,
+    name: str,
+    *,
+    algo: str,
+    target: str,
+    seed: int,
+    source: str | None = None,
+    returns: list[float] | None = None,
+    records: list[dict] | None = None,
+    coworld: dict | None = None,
+    variant: str | None = None,
+    value: tuple[float, float] | None = None,
+) -> Path:
+    """A run folder as `coworld train` (+ `coworld eval`, + a sweep's record) leaves it."""
+    run = root / name
+    run.mkdir(parents=True)
+    (run / "run.json").write_text(json.dumps({"algo": algo, "source": source, "target": target, "dataset": "d.h5"}))
+    (run / "config.json").write_text(json.dumps({"seed": seed, "coworld": coworld or {}}))
+    if returns is not None:
+        result = {"task": target, "returns": returns, "std": float(np.std(returns)), "success_rate": None}
+        if value is not None:
+            result.update(value_estimate=[value[0]] * len(returns), value_true=[value[1]] * len(returns))
+        (run / "eval.json").write_text(json.dumps(result))
+    if records is not None:
+        (run / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in records))
+    if variant is not None:
+        record = {"algo": algo, "variant": variant, "source": source or "toy_reach", "target": target, "seed": seed}
+        (run / "sweep-run.json").write_text(json.dumps(record))
+    return run
+
+
+def make_grid(root: Path) -> None:
+    """Final returns (mean of eval.json's returns):
+    toy_reach_shifted (source toy_reach): coworld 25, 35, 45; dreamerv2 10, 10, 14
+    toy_reach (source toy_reach_shifted): coworld 20, 30 (a third seed unfinished); dreamerv2 40, 40, 40
+    """
+    shifted, reach = "toy_reach_shifted", "toy_reach"
+    for seed, r in enumerate([25.0, 35.0, 45.0]):
+        make_run(root, f"cw-a{seed}", algo="coworld", source="toy_reach", target=shifted, seed=seed,
+                 returns=[r - 5, r + 5], value=(3.0, 2.0))  # fmt: skip
+    for seed, r in enumerate([10.0, 10.0, 14.0]):
+        make_run(root, f"dv-a{seed}", algo="dreamerv2", target=shifted, seed=seed, returns=[r], value=(9.0, 1.0))
+    for seed, r in enumerate([20.0, 30.0]):
+        make_run(root, f"cw-b{seed}", algo="coworld", source=shifted, target=reach, seed=seed, returns=[r])
+    partial = [{"step": 7, "target/wm/loss": 1.0}]
+    make_run(root, "cw-b2", algo="coworld", source=shifted, target=reach, seed=2, records=partial)
+    for seed in range(3):
+        make_run(root, f"dv-b{seed}", algo="dreamerv2", target=reach, seed=seed, returns=[40.0])
+
+
+def test_table_mean_std_bold_and_iqm_aggregate(tmp_path, score_scale):
+    make_grid(tmp_path)
+    table = results_table(load_results(tmp_path)).splitlines()
+    assert table[0] == "| pair | dreamerv2 | coworld |"  # the paper's column order
+    assert table[2] == "| toy_reach → toy_reach_shifted | 11.3 ± 1.9 | **35.0 ± 8.2** |"
+    assert table[3] == "| toy_reach_shifted → toy_reach | **40.0 ± 0.0** | 25.0 ± 5.0 (n=2) |"
+    # IQM of normalized scores: dreamerv2 [.1 .1 .14 .4 .4 .4] -> middle four .1 .14 .4 .4 -> 0.26;
+    # coworld [.25 .35 .45 .2 .3] -> middle three .25 .3 .35 -> 0.30
+    aggregate = table[4].split(" | ")
+    assert aggregate[0] == "| IQM normalized score [95% CI]"
+    for cell, point in zip(aggregate[1:], ("0.26", "0.30"), strict=True):
+        value, interval = cell.strip(" |").split(" [")
+        low, high = (float(x) for x in interval.rstrip("]").split(", "))
+        assert value == point and low <= float(value) <= high and low < high
+
+
+def test_iqm_interval_known_answers():
+    assert iqm_interval([[0, 1, 2, 3, 4, 5, 6, 7]]).point == pytest.approx(3.5)  # mean of 2..5
+    # one task of two runs {0, 1}: resamples give IQMs 0, 0.5, 0.5, 1 (a quarter each): the 95% interval is [0, 1]
+    ci = iqm_interval([[0.0, 1.0]])
+    assert (ci.point, ci.low, ci.high, ci.runs, ci.tasks) == (0.5, 0.0, 1.0, 2, 1)
+    # a one-run task is a constant in every resample: IQM of {5, a, b} = (5 + a + b) / 3, a, b from {0, 1}
+    ci = iqm_interval([[5.0], [0.0, 1.0]])
+    assert ci.point == pytest.approx(2.0)
+    assert ci.low == pytest.approx(5 / 3) and ci.high == pytest.approx(7 / 3)
+    assert iqm_interval([[0.4], [0.2]]).low == iqm_interval([[0.4], [0.2]]).high == pytest.approx(0.3)
+
+
+def test_results_csv_one_row_per_run(tmp_path, score_scale):
+    make_grid(tmp_path)
+    made = write_report(tmp_path, tmp_path / "out")
+    rows = list(csv.DictReader(io.StringIO((tmp_path / "out" / "results.csv").read_text())))
+    assert len(rows) == len(made.results) == 12 and made.finished == 11
+    row = next(r for r in rows if r["run_dir"].endswith("cw-a2"))
+    assert row["pair"] == "toy_reach->toy_reach_shifted" and row["algo"] == "coworld" and row["seed"] == "2"
+    assert float(row["final_return"]) == 45.0 and float(row["return_std"]) == 5.0 and row["episodes"] == "2"
+    assert float(row["normalized_score"]) == pytest.approx(0.45)
+    assert float(row["value_estimate"]) == 3.0 and float(row["value_true"]) == 2.0
+    baseline = next(r for r in rows if r["run_dir"].endswith("dv-a0"))
+    assert baseline["pair"] == "toy_reach_shifted" and baseline["source"] == ""  # plain train: no pair known
+    unfinished = next(r for r in rows if r["run_dir"].endswith("cw-b2"))
+    assert unfinished["final_return"] == "" and unfinished["updates"] == "7"
+
+
+def test_report_files_and_unfinished_runs(tmp_path, score_scale):
+    make_grid(tmp_path)
+    out = CliRunner().invoke(main, ["report", str(tmp_path)])
+    assert out.exit_code == 0, out.output
+    assert "12 runs, 11 finished" in out.output
+    text = (tmp_path / "report.md").read_text()
+    assert "| toy_reach → toy_reach_shifted | 11.3 ± 1.9 | **35.0 ± 8.2** |" in text
+    assert "## Not finished" in text and "cw-b2" in text and "7 updates logged" in text
+    # value check: dreamerv2 9.00 vs 1.00 on the shifted task (the runs with eval.json's value check)
+    assert "| toy_reach → toy_reach_shifted | dreamerv2 | 9.00 | 1.00 | 3 |" in text
+    for name in ("value_check.png",):
+        assert (tmp_path / name).read_bytes()[:4] == b"\x89PNG"
+    assert not (tmp_path / "ablation.png").exists()  # no CoWorld variants here
+
+
+def test_curves_keep_the_target_evaluations_of_coworld(tmp_path):
+    # CoWorld's run folder also logs its source agent's evaluations (no value check) under eval/return
+    records = [
+        {"step": 1000, "time": 5.0, "eval/return": 30.0},  # source, pretraining
+        {"step": 100, "time": 9.0, "target/wm/loss": 1.0},
+        {"step": 100, "time": 10.0, "eval/return": 4.0, "eval/value_estimate": 1.0, "eval/value_true": 2.0},
+        {"step": 2000, "time": 3.0, "eval/return": 31.0},  # a resumed run: the logger's clock restarts
+        {"step": 200, "time": 7.0, "eval/return": 6.0, "eval/value_estimate": 1.0, "eval/value_true": 2.0},
+    ]
+    run = make_run(tmp_path, "cw", algo="coworld", source="toy_reach", target="toy_reach_shifted", seed=0,
+                   records=records)  # fmt: skip
+    assert learning_curve(run, "coworld") == [(100, 4.0), (200, 6.0)]
+    assert learning_curve(run, "dreamerv2") == [(1000, 30.0), (100, 4.0), (2000, 31.0), (200, 6.0)]
+    result = load_result(run)
+    assert result.updates == 200  # target updates, not the source's environment steps
+    assert result.wall_time_s == pytest.approx(10.0 + 7.0)
+    steps, mean, std = mean_band([[(100, 1.0), (200, 3.0)], [(100, 3.0), (200, 5.0)], [(100, 2.0)]])
+    assert steps.tolist() == [100, 200] and mean.tolist() == [2.0, 4.0]
+    assert std.tolist() == pytest.approx([np.std([1, 3, 2]), 1.0])
+
+
+def test_ablation_from_plain_runs_and_from_sweep_records(tmp_path, score_scale):
+    target = "toy_reach_shifted"
+    for seed, r in enumerate([30.0, 34.0]):
+        make_run(tmp_path, f"full{seed}", algo="coworld", source="toy_reach", target=target, seed=seed, returns=[r])
+        make_run(tmp_path, f"noalign{seed}", algo="coworld", source="toy_reach", target=target, seed=seed,
+                 returns=[r - 20], coworld={"align": False, "value_reg": True})  # fmt: skip
+        make_run(tmp_path, f"lr{seed}", algo="coworld", source="toy_reach", target=target, seed=seed,
+                 returns=[r - 10], variant="slow-lr")  # fmt: skip
+    results = load_results(tmp_path)
+    assert sorted({r.variant for r in results}) == ["", "no-align", "slow-lr"]
+    table = results_table(results, variants=True).splitlines()
+    assert table[0] == "| pair | coworld | coworld (no-align) | coworld (slow-lr) |"
+    assert table[2] == "| toy_reach → toy_reach_shifted | **32.0 ± 2.0** | 12.0 ± 2.0 | 22.0 ± 2.0 |"
+    assert results_table(results).count("\n") == 3  # the main table: CoWorld as configured only
+    write_report(tmp_path)
+    assert (tmp_path / "ablation.png").read_bytes()[:4] == b"\x89PNG"
+    assert "## Ablation" in (tmp_path / "report.md").read_text()
+
+
+def test_run_folders_are_found_by_their_run_json(tmp_path):
+    make_run(tmp_path / "a", "r1", algo="curl", target="toy_reach", seed=0, returns=[1.0])
+    collector = tmp_path / "datasets" / "toy_reach-medium_replay.run"  # a collector's run folder: not a run
+    collector.mkdir(parents=True)
+    (collector / "run.json").write_text(json.dumps({"task": "toy_reach", "quality": "medium-replay"}))
+    assert find_run_dirs(tmp_path) == [tmp_path / "a" / "r1"]
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    out = CliRunner().invoke(main, ["report", str(empty)])
+    assert out.exit_code == 2 and "no run folders" in out.output
+    out = CliRunner().invoke(main, ["report", str(tmp_path / "missing")])
+    assert out.exit_code == 2 and "is not a folder" in out.output and not (tmp_path / "missing").exists()
+
+
+@pytest.mark.parametrize("missing", ["scipy", "matplotlib"])
+def test_missing_report_extra_gives_the_install_hint(tmp_path, monkeypatch, missing):
+    make_run(tmp_path, "r", algo="curl", target="toy_reach", seed=0, returns=[1.0, 2.0],
+             records=[{"step": 10, "eval/return": 1.0}])  # fmt: skip
+    monkeypatch.setitem(sys.modules, missing, None)  # what importing it does without the extra
+    monkeypatch.setitem(sys.modules, f"{missing}.stats" if missing == "scipy" else "matplotlib.figure", None)
+    out = CliRunner().invoke(main, ["report", str(tmp_path)])
+    assert out.exit_code == 2 and "pip install 'coworld[report]'" in out.output
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["r"]  # nothing written

@@ -1,0 +1,250 @@
+"""Grids: the named tables, the runs a grid makes, grids from flags and TOML, and what a rerun may change."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from coworld.errors import ConfigError, CoworldError, UnknownTaskError
+from coworld.sweep.grid import (
+    ABLATION,
+    DataSpec,
+    Run,
+    SweepSpec,
+    build_spec,
+    named_table,
+    parse_pairs,
+    read_grid_file,
+    seeds_from,
+)
+from coworld.sweep.runner import SPEC_FILE, Execution, SweepDirs, check_spec, collect_args, plan, run_steps
+
+TOY = (("toy_reach", "toy_reach_shifted"),)
+
+
+def test_table1_is_the_papers_five_dmc_pairs():
+    spec = named_table("dmc")
+    assert spec.pairs == (
+        ("walker_walk", "walker_downhill"),
+        ("walker_walk", "walker_uphill"),
+        ("walker_walk", "walker_nofoot"),
+        ("cheetah_run", "cheetah_downhill"),
+        ("cheetah_run", "cheetah_nopaw"),
+    )
+    assert spec.preset == "paper" and spec.data.quality == "medium-replay" and spec.eval_episodes == 10
+    assert len(spec.runs()) == 5 * 4 * 3
+
+
+def test_table2_is_the_papers_five_metaworld_pairs():
+    spec = named_table("metaworld")
+    assert [target for _, target in spec.pairs] == [
+        "mw_door_close",
+        "mw_button_press_topdown",
+        "mw_handle_press",
+        "mw_button_press",
+        "mw_assembly",
+    ]
+    assert {source for source, _ in spec.pairs} == {
+        "mw_window_close",
+        "mw_handle_press",
+        "mw_drawer_close",
+        "mw_stick_push",
+    }
+
+
+def test_toy_table_has_every_algorithm_three_seeds_and_a_random_target_dataset():
+    spec = named_table("toy").check()
+    assert spec.pairs == TOY and spec.preset == "tiny"
+    runs = spec.runs()
+    for algo in ("coworld", "dreamerv2", "curl", "curl-cql"):
+        assert sorted(r.seed for r in runs if r.algo == algo) == [0, 1, 2]
+    assert spec.data.policy == "random" and spec.data.episodes is not None
+
+
+def test_ablation_switches_each_term_off_in_turn():
+    spec = build_spec(ablation=True)
+    variants = dict(spec.variants)
+    assert variants == {
+        "": (),
+        "no-align": ("coworld.align=false",),
+        "no-relabel": ("coworld.reward_relabel=false",),
+        "no-value-reg": ("coworld.value_reg=false",),
+    }
+    run = Run("coworld", "mw_drawer_close", "mw_button_press", 0, "no-relabel")
+    assert spec.run_overrides(run)[-1] == "coworld.reward_relabel=false"
+    # on a table: the table's grid with the variants added, only CoWorld runs multiplied
+    toy = build_spec(table="toy", ablation=True)
+    assert toy.pairs == TOY and toy.variants == ABLATION
+    assert len(toy.runs()) == 3 * (4 + 3)
+
+
+def test_baselines_are_shared_by_pairs_with_the_same_target():
+    spec = SweepSpec(
+        pairs=(("walker_walk", "walker_uphill"), ("walker_downhill", "walker_uphill")),
+        algos=("coworld", "dreamerv2"),
+        seeds=(0, 1),
+        variants=(("", ()), ("no-align", ("coworld.align=false",))),
+    )
+    names = [run.name for run in spec.runs()]
+    assert len(names) == len(set(names)) == 2 * 2 * 2 + 2  # CoWorld per source and variant; one DreamerV2 per seed
+    assert "coworld-no-align-walker_downhill-walker_uphill-s1" in names
+    assert "dreamerv2-walker_uphill-s0" in names
+    assert spec.targets() == ["walker_uphill"]
+
+
+def test_flags_replace_the_tables_values():
+    spec = build_spec(
+        table="dmc",
+        pairs=parse_pairs("walker_walk:walker_uphill"),
+        algos=("coworld", "dreamerv2"),
+        seeds=seeds_from(2),
+        preset="tiny",
+        overrides=["train.batch_size=4"],
+    )
+    assert spec.pairs == (("walker_walk", "walker_uphill"),) and spec.seeds == (0, 1) and spec.preset == "tiny"
+    assert len(spec.runs()) == 4
+    toy = build_spec(table="toy", overrides=["train.batch_size=4"])
+    assert toy.overrides[-1] == "train.batch_size=4" and len(toy.overrides) > 1  # added after the table's own
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "error", "words"),
+    [
+        ({}, CoworldError, "say what to run"),
+        ({"table": "atari"}, CoworldError, "unknown table"),
+        ({"pairs": (("toy_reach", "walker_uphill"),)}, CoworldError, "action dimensions"),
+        ({"table": "toy", "algos": ("dqn",)}, CoworldError, "unknown algorithm"),
+        ({"table": "toy", "seeds": (1, 1)}, CoworldError, "distinct"),
+        ({"table": "toy", "overrides": ["coworld.nope=1"]}, ConfigError, "unknown config key"),
+        ({"table": "toy", "overrides": ["coworld.iterations=many"]}, ConfigError, "takes a int"),
+        ({"table": "toy", "preset": "huge"}, ConfigError, "unknown preset"),
+        ({"table": "toy", "data": {"episodes": None}}, ConfigError, "random dataset needs"),
+        ({"table": "toy", "data": {"colour": "red"}}, CoworldError, "bad data setting"),
+        ({"table": "toy", "variants": (("a b", ()),)}, CoworldError, "variant name"),
+    ],
+)
+def test_bad_grids_are_refused_with_one_line(kwargs, error, words):
+    with pytest.raises(error) as info:
+        build_spec(**kwargs)
+    assert words in str(info.value) and "\n" not in str(info.value)
+
+
+def test_parse_pairs_and_seeds():
+    assert parse_pairs("toy_reach:toy_reach_shifted, walker_walk:walker_uphill") == (
+        ("toy_reach", "toy_reach_shifted"),
+        ("walker_walk", "walker_uphill"),
+    )
+    with pytest.raises(CoworldError, match="SOURCE:TARGET"):
+        parse_pairs("toy_reach")
+    with pytest.raises(UnknownTaskError):
+        parse_pairs("toy_reach:nowhere")
+    assert seeds_from(3) == (0, 1, 2) and seeds_from([4, 7]) == (4, 7)
+    with pytest.raises(CoworldError):
+        seeds_from(0)
+
+
+def test_toml_grid_file(tmp_path):
+    path = tmp_path / "grid.toml"
+    path.write_text(
+        'pairs = ["toy_reach:toy_reach_shifted"]\nalgos = ["coworld", "curl"]\nseeds = [3, 5]\npreset = "tiny"\n'
+        'set = ["curl.updates=7"]\neval_episodes = 4\n'
+        '[variants]\nfull = []\nno-align = ["coworld.align=false"]\n'
+        '[data]\npolicy = "random"\nmax_steps = 300\n'
+    )
+    spec = build_spec(**read_grid_file(path))
+    assert spec.algos == ("coworld", "curl") and spec.seeds == (3, 5) and spec.eval_episodes == 4
+    assert spec.data == DataSpec(policy="random", max_steps=300) and spec.overrides == ("curl.updates=7",)
+    assert [r.name for r in spec.runs()] == [
+        "coworld-full-toy_reach-toy_reach_shifted-s3",
+        "coworld-full-toy_reach-toy_reach_shifted-s5",
+        "coworld-no-align-toy_reach-toy_reach_shifted-s3",
+        "coworld-no-align-toy_reach-toy_reach_shifted-s5",
+        "curl-toy_reach_shifted-s3",
+        "curl-toy_reach_shifted-s5",
+    ]
+    path.write_text('pairs = ["toy_reach:toy_reach_shifted"]\nseed = 3\n')
+    with pytest.raises(CoworldError, match="unknown keys \\['seed'\\]"):
+        read_grid_file(path)
+    path.write_text("pairs = [\n")
+    with pytest.raises(CoworldError, match="not valid TOML"):
+        read_grid_file(path)
+    with pytest.raises(CoworldError, match="no grid file"):
+        read_grid_file(tmp_path / "missing.toml")
+
+
+def test_spec_round_trips_through_json():
+    spec = build_spec(table="toy", ablation=True)
+    again = SweepSpec.from_dict(json.loads(json.dumps(spec.to_dict())))
+    assert again == spec
+
+
+def test_rerun_may_extend_the_grid_but_not_change_its_runs(tmp_path):
+    first = build_spec(table="toy", seeds=(0, 1), algos=("curl",))
+    check_spec(first, tmp_path)
+    check_spec(first, tmp_path)  # the same grid again
+    check_spec(build_spec(table="toy", seeds=(2,), algos=("curl-cql",)), tmp_path)
+    saved = json.loads((tmp_path / SPEC_FILE).read_text())
+    assert saved["seeds"] == [0, 1, 2] and saved["algos"] == ["curl", "curl-cql"]  # the union of both grids
+    for changed, words in (
+        ({"preset": "paper"}, "preset: saved 'tiny', now 'paper'"),
+        ({"overrides": ["curl.updates=5"]}, "overrides"),
+        ({"eval_episodes": 3}, "eval_episodes: saved 10, now 3"),
+        ({"data": {"episodes": 99}}, "data.episodes: saved 20, now 99"),
+        ({"variants": (("", ()), ("no-align", ("coworld.align=true",)))}, None),
+    ):
+        before = (tmp_path / SPEC_FILE).read_text()
+        if words is None:
+            check_spec(build_spec(table="toy", variants=(("no-align", ("coworld.align=false",)),)), tmp_path)
+            with pytest.raises(CoworldError, match="holds the variant 'no-align'"):
+                check_spec(build_spec(table="toy", **changed), tmp_path)
+            continue
+        with pytest.raises(CoworldError) as info:
+            check_spec(build_spec(table="toy", **changed), tmp_path)
+        assert words in str(info.value) and "use a new --dir" in str(info.value)
+        assert (tmp_path / SPEC_FILE).read_text() == before  # nothing written
+
+
+def test_commands_of_a_run_and_a_dataset(tmp_path):
+    spec = build_spec(table="toy", ablation=True)
+    dirs = SweepDirs.at(tmp_path)
+    run = Run("coworld", "toy_reach", "toy_reach_shifted", 2, "no-align")
+    execution = Execution(threads=3, device="cpu")
+    dataset = dirs.dataset("toy_reach_shifted", spec)
+    assert dataset == tmp_path / "datasets" / "toy_reach_shifted-random.h5"
+    train, evaluate = run_steps(spec, run, dirs.run_dir(run), dataset, execution)
+    assert train[:2] == ("train", "--algo") and "--source" in train and train[train.index("--seed") + 1] == "2"
+    assert train[-4:] == ("--device", "cpu", "--threads", "3")
+    sets = [train[i + 1] for i, arg in enumerate(train) if arg == "--set"]
+    assert sets == [*spec.overrides, "coworld.align=false"]  # the variant's override comes last and wins
+    assert evaluate[evaluate.index("--episodes") + 1] == "10"
+    assert evaluate[evaluate.index("--out") + 1].endswith("eval.json.partial")
+    baseline = run_steps(spec, Run("curl", None, "toy_reach_shifted", 0), dirs.run_dir(run), dataset, execution)[0]
+    assert "--source" not in baseline
+    collect = collect_args(spec, "toy_reach_shifted", dataset, execution, resume=True)
+    assert collect[collect.index("--policy") + 1] == "random" and "--resume" in collect and "--preset" not in collect
+    assert collect[collect.index("--episodes") + 1] == str(spec.data.episodes)
+
+
+def test_plan_skips_finished_runs_and_complete_datasets(tmp_path, toy_dataset_writer):
+    spec = build_spec(table="toy", algos=("curl", "dreamerv2"), seeds=(0, 1), eval_episodes=2)
+    dirs = SweepDirs.at(tmp_path)
+    first = plan(spec, dirs, Execution())
+    assert [job.kind for job in first.jobs] == ["collect"] + ["run"] * 4
+    assert all(job.needs == first.jobs[0].name for job in first.jobs[1:])
+    dirs.data.mkdir(parents=True)
+    toy_dataset_writer(dirs.dataset("toy_reach_shifted", spec), "toy_reach_shifted", episodes=1)
+    finished = dirs.runs / "curl-toy_reach_shifted-s1"
+    finished.mkdir(parents=True)
+    (finished / "eval.json").write_text(json.dumps({"returns": [1.0, 2.0]}))
+    wrong = dirs.runs / "curl-toy_reach_shifted-s0"
+    wrong.mkdir(parents=True)
+    (wrong / "eval.json").write_text(json.dumps({"returns": [1.0]}))  # evaluated with other settings: not finished
+    second = plan(spec, dirs, Execution())
+    assert second.finished == ["curl-toy_reach_shifted-s1"]
+    assert [job.name for job in second.jobs] == [
+        "curl-toy_reach_shifted-s0",
+        "dreamerv2-toy_reach_shifted-s0",
+        "dreamerv2-toy_reach_shifted-s1",
+    ]
+    assert all(job.needs is None for job in second.jobs)  # the dataset is complete
