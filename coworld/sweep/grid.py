@@ -315,6 +315,7 @@ def read_grid_file(path: str | Path) -> dict[str, Any]:
     """Read a TOML grid file into keyword arguments of :func:`build_spec` (see the README for its keys)."""
     path = Path(path)
     import tomllib
+
     try:
         data = tomllib.loads(path.read_text())
     except FileNotFoundError:
