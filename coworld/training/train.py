@@ -103,7 +103,11 @@ def check_job(
         extra.append(f"device={device}")
     config = make_config(preset, extra)
     path = Path(dataset) if dataset is not None else default_dataset_path(target, "medium-replay")
-    check_dataset(path, target, target_spec.action_size)
+    if not check_dataset(path, target, target_spec.action_size):
+        warnings.append(
+            f"{path} is not complete (its collection was interrupted or is still running): training uses the"
+            " episodes committed so far; finish it with `coworld collect ... --resume` for the whole dataset"
+        )
     run_dir = Path(logdir) if logdir is not None else default_logdir(algo, source, target, config.seed)
     job = TrainJob(algo, source if algo == "coworld" else None, target, path, run_dir, config, preset)
     resume = check_run_dir(run_dir, config, job.info())
@@ -115,8 +119,10 @@ IMAGE_SHAPE = (64, 64, 3)
 """The frames every model here takes."""
 
 
-def check_dataset(path: Path, task: str, action_size: int) -> None:
-    """The dataset exists, opens, was recorded in ``task`` with its action size, and has 64 x 64 RGB frames."""
+def check_dataset(path: Path, task: str, action_size: int) -> bool:
+    """The dataset exists, opens, was recorded in ``task`` with its action size, and has 64 x 64 RGB frames.
+
+    Returns whether it is complete (its collection reached its target)."""
     from coworld.data import open_dataset
 
     if not path.exists():
@@ -134,6 +140,7 @@ def check_dataset(path: Path, task: str, action_size: int) -> None:
                 f"{path} has {h} x {w} x {c} frames but the models take 64 x 64 x 3 RGB frames; convert it to 64 x 64"
                 " (e.g. `coworld dataset import ... --resize 64`)"
             )
+        return bool(data.complete)
 
 
 def run_job(job: TrainJob, *, progress: bool = True) -> dict[str, Any]:

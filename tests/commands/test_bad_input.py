@@ -134,3 +134,14 @@ def test_eval_on_a_task_of_another_action_size_is_refused(tmp_path):
 def test_negative_counts_and_seeds_are_usage_errors(args):
     code, out = run(args)
     assert code == 2 and "Invalid value" in out and "Traceback" not in out
+
+
+def test_an_unfinished_dataset_is_warned_about(tmp_path):
+    path = tmp_path / "partial.h5"
+    with DatasetWriter(
+        path, task="toy_reach_shifted", env_config={}, quality="random", collector={}, action_size=2
+    ) as w:
+        w.add_episode(np.zeros((4, 64, 64, 3), np.uint8), np.zeros((3, 2)), np.zeros(3), terminated=False)
+    job = check_job(algo="dreamerv2", source=None, target="toy_reach_shifted", dataset=path, preset="tiny",
+                    logdir=tmp_path / "run", seed=0, device="cpu", overrides=())  # fmt: skip
+    assert any("is not complete" in warning for warning in job.warnings)

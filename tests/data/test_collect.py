@@ -95,7 +95,7 @@ def test_cli_collect_default_path_progress_and_refusals(
     assert result.exit_code == 0, result.output
     path = tmp_path / "datasets" / f"{fake_task}-random.h5"
     assert f"wrote {Path('datasets') / f'{fake_task}-random.h5'}: 4 episodes" in result.stdout
-    assert "step/s" in result.stderr and "episodes=4" in result.stderr  # the tqdm bar: rate, episodes, mean return
+    assert "env steps/s" in result.stderr and "episodes=4" in result.stderr  # the tqdm bar: rate, episodes, mean return
     assert "mean_return=" in result.stderr
     before = helpers.file_state(path)
     result = runner.invoke(main, ["collect", "--policy", "random", "--task", fake_task, "--episodes", "4"])
