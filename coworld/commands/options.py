@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable
 from typing import Any, TypeVar
 
@@ -10,11 +11,21 @@ import click
 F = TypeVar("F", bound=Callable[..., Any])
 
 
-def _set_threads(ctx: click.Context, param: click.Parameter, value: int | None) -> None:
-    if value is not None:
-        import torch
+DEFAULT_THREADS = 1
+"""torch's CPU threads when neither ``--threads`` nor ``OMP_NUM_THREADS`` says otherwise. Measured on 2 cores
+(benchmarks/RESULTS.md, "Threads"): a second thread makes a tiny update 1.4x faster on an idle machine but 2.6x
+slower when another process holds a core (OpenMP threads wait for each other at every parallel region), and
+``OMP_WAIT_POLICY=PASSIVE`` avoids the collapse only by losing the gain; one thread never falls off that cliff."""
 
-        torch.set_num_threads(value)
+
+def _set_threads(ctx: click.Context, param: click.Parameter, value: int | None) -> None:
+    if value is None:
+        if os.environ.get("OMP_NUM_THREADS"):
+            return  # the user's own setting, which torch already follows
+        value = DEFAULT_THREADS
+    import torch
+
+    torch.set_num_threads(value)
 
 
 def threads_option(command: F) -> F:
@@ -25,5 +36,6 @@ def threads_option(command: F) -> F:
         default=None,
         expose_value=False,
         callback=_set_threads,
-        help="CPU threads torch uses [default: torch's choice, one per core]. See the README on busy machines.",
+        help=f"CPU threads torch uses [default: OMP_NUM_THREADS if set, else {DEFAULT_THREADS}: safe on a busy"
+        " machine; see the README's 'Measured' before raising it].",
     )(command)

@@ -35,3 +35,14 @@ def test_threads_sets_torch_threads(args, restore_threads):
 def test_threads_must_be_positive(restore_threads):
     result = CliRunner().invoke(main, ["eval", "--threads", "0", "--ckpt", "x"])
     assert result.exit_code == 2 and "--threads" in result.output
+
+
+def test_without_threads_the_cli_uses_one_thread_unless_omp_num_threads_says_otherwise(restore_threads, monkeypatch):
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    torch.set_num_threads(2)
+    CliRunner().invoke(main, ["eval", "--ckpt", "no/such/run"])
+    assert torch.get_num_threads() == 1  # the measured default (benchmarks/RESULTS.md, "Threads")
+    monkeypatch.setenv("OMP_NUM_THREADS", "2")
+    torch.set_num_threads(2)
+    CliRunner().invoke(main, ["eval", "--ckpt", "no/such/run"])
+    assert torch.get_num_threads() == 2  # the user's setting stands
