@@ -1,0 +1,83 @@
+"""What the toy tasks measure: returns of simple policies, and how far the tiny DreamerV2 gets online.
+
+For each toy task: uniform random actions, the constant action (+1, +1), the best of 16 constant directions, and
+the scripted expert (50 episodes each, seeds 0-49; the best constant direction over 20). With ``--learn N``, the
+tiny DreamerV2 also learns ``toy_reach`` online for N environment steps (``coworld collect`` with no stop return),
+evaluated every 1,000 steps on 10 episodes.
+
+``--goal X Y`` moves the goal of both toy tasks for this process only (an experiment, not a registered task): with
+the goal at the centre a constant action cannot score, so a return above the random policy's needs perception.
+
+    MUJOCO_GL=egl .venv/bin/python benchmarks/toy_baselines.py --learn 8000
+    MUJOCO_GL=egl .venv/bin/python benchmarks/toy_baselines.py --goal 0 0 --learn 6000
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import tempfile
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import torch
+
+import coworld.envs.toy as toy
+from coworld import envs
+
+
+def mean_return(task: str, policy: Callable[[object], np.ndarray], episodes: int) -> float:
+    env = envs.make(task, seed=0)
+    totals = []
+    for episode in range(episodes):
+        env.reset(seed=episode)
+        total, done = 0.0, False
+        while not done:
+            _, reward, terminated, truncated, _ = env.step(policy(env))
+            total += float(reward)
+            done = terminated or truncated
+        totals.append(total)
+    env.close()
+    return float(np.mean(totals))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--goal", type=float, nargs=2, default=None, metavar=("X", "Y"))
+    parser.add_argument("--learn", type=int, default=0, help="also train the tiny DreamerV2 online this many steps")
+    args = parser.parse_args()
+    if args.goal is not None:
+        toy.GOAL = tuple(args.goal)
+    print(f"goal at {toy.GOAL}")
+    print("| task | random | constant (+1, +1) | best constant | expert |")
+    print("|---|---:|---:|---:|---:|")
+    for task in ("toy_reach", "toy_reach_shifted"):
+        rng = np.random.default_rng(0)
+        directions = [np.array([np.cos(a), np.sin(a)]) for a in np.linspace(0, 2 * np.pi, 16, endpoint=False)]
+        row = [
+            mean_return(task, lambda env, rng=rng: rng.uniform(-1, 1, 2), 50),
+            mean_return(task, lambda env: np.array([1.0, 1.0]), 50),
+            max(mean_return(task, lambda env, d=d: d, 20) for d in directions),
+            mean_return(task, lambda env: env.unwrapped.expert_action(), 50),
+        ]
+        print(f"| {task} | " + " | ".join(f"{value:.1f}" for value in row) + " |")
+    if args.learn:
+        from coworld.training.collect import collect_dreamerv2
+
+        torch.set_num_threads(1)
+        with tempfile.TemporaryDirectory() as folder:
+            out = Path(folder) / "toy_reach.h5"
+            overrides = ["train.eval_every=1000", "train.eval_episodes=10"]
+            collect_dreamerv2(
+                "toy_reach", out, preset="tiny", overrides=overrides, max_steps=args.learn, stop_return=1e9,
+                device="cpu", progress=False,
+            )  # fmt: skip
+            records = [json.loads(line) for line in (Path(folder) / "toy_reach.run" / "metrics.jsonl").open()]
+        curve = [(r["step"], r["eval/return"]) for r in records if "eval/return" in r]
+        print("tiny DreamerV2 online on toy_reach, evaluation return by environment step:")
+        print(", ".join(f"{step}: {value:.1f}" for step, value in curve))
+
+
+if __name__ == "__main__":
+    main()
