@@ -498,3 +498,17 @@ def from_dict(data: Mapping[str, Any]) -> Config:
     config = apply_overrides(Config(), flat)
     validate(config)
     return config
+
+
+def first_difference(saved: Mapping[str, Any], now: Mapping[str, Any], prefix: str = "") -> str:
+    """The first key where two nested dicts (saved configs, say) differ, as ``'key: saved X, now Y'``; '' when
+    they are equal."""
+    for key in sorted(set(saved) | set(now)):
+        a, b = saved.get(key), now.get(key)
+        if isinstance(a, Mapping) and isinstance(b, Mapping):
+            found = first_difference(a, b, f"{prefix}{key}.")
+            if found:
+                return found
+        elif a != b:
+            return f"{prefix}{key}: saved {a!r}, now {b!r}"
+    return ""

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import click
 
@@ -36,7 +38,7 @@ def predictions(ckpt, out, episodes, context, length, start, dataset, online, se
     Shows truth, each model's frames and |error| over time, for a CoWorld run both the target and the source
     model on the same target episodes, and prints the per-step error (MSE, pixels in [0, 1]).
     """
-    from coworld.viz.media import output_kind, write_image, write_video
+    from coworld.viz.media import output_kind
     from coworld.viz.predictions import error_table, predict, prediction_strip, prediction_video
     from coworld.viz.runs import load_run_models, prediction_windows, target_episodes
 
@@ -47,14 +49,13 @@ def predictions(ckpt, out, episodes, context, length, start, dataset, online, se
     pred = predict(run.world_models(), batch, context)
     click.echo(f"{run.run_dir} ({run.algo} run): {where}, steps {start}..{start + batch['image'].shape[1] - 1}")
     click.echo(error_table(pred))
-    if kind == "image":
-        picture = prediction_strip(pred, scale=scale or 1)
-        write_image(out, picture)
-        click.echo(f"wrote {out} ({picture.shape[1]} x {picture.shape[0]} pixels)")
-    else:
-        frames = prediction_video(pred, scale=scale or 2)
-        write_video(out, frames, fps=fps)
-        click.echo(f"wrote {out} ({len(frames)} frames of {frames.shape[2]} x {frames.shape[1]} pixels)")
+    _save(
+        out,
+        kind,
+        image=lambda: prediction_strip(pred, scale=scale or 1),
+        video=lambda: prediction_video(pred, scale=scale or 2),
+        fps=fps,
+    )
 
 
 @viz.command()
@@ -128,20 +129,33 @@ def dataset_command(path, out, episodes, frames, hist, fps) -> None:
     plus a histogram of the returns of all episodes."""
     from coworld.data import open_dataset
     from coworld.viz.dataset import dataset_grid, dataset_video, returns_histogram
-    from coworld.viz.media import output_kind, require_extra, write_figure, write_image, write_video
+    from coworld.viz.media import output_kind, require_extra, write_figure
 
     kind = output_kind(out)
     hist = hist if hist is not None else out.with_name(f"{out.stem}-returns.png")
     output_kind(hist, (".png",))
     require_extra("matplotlib")
     with open_dataset(path) as data:
-        if kind == "image":
-            picture = dataset_grid(data, episodes=episodes or 8, frames=frames)
-            write_image(out, picture)
-            click.echo(f"wrote {out} ({picture.shape[1]} x {picture.shape[0]} pixels)")
-        else:
-            video = dataset_video(data, episodes=episodes or 3)
-            write_video(out, video, fps=fps)
-            click.echo(f"wrote {out} ({len(video)} frames of {video.shape[2]} x {video.shape[1]} pixels)")
+        _save(
+            out,
+            kind,
+            image=lambda: dataset_grid(data, episodes=episodes or 8, frames=frames),
+            video=lambda: dataset_video(data, episodes=episodes or 3),
+            fps=fps,
+        )
         write_figure(hist, returns_histogram(data))
         click.echo(f"wrote {hist} (returns of {data.num_episodes} episodes)")
+
+
+def _save(out: Path, kind: str, *, image: Callable[[], Any], video: Callable[[], Any], fps: int) -> None:
+    """Write a picture (``kind`` 'image') or a video of ``out``'s kind, and say what was written."""
+    from coworld.viz.media import write_image, write_video
+
+    if kind == "image":
+        picture = image()
+        write_image(out, picture)
+        click.echo(f"wrote {out} ({picture.shape[1]} x {picture.shape[0]} pixels)")
+    else:
+        frames = video()
+        write_video(out, frames, fps=fps)
+        click.echo(f"wrote {out} ({len(frames)} frames of {frames.shape[2]} x {frames.shape[1]} pixels)")

@@ -407,16 +407,3 @@ def build_spec(
         except TypeError as err:
             raise CoworldError(f"bad data setting ({err})") from None
     return dataclasses.replace(spec, **changes).check()
-
-
-def first_difference(saved: Mapping[str, Any], now: Mapping[str, Any], prefix: str = "") -> str:
-    """The first key where two spec dicts differ, as 'key: saved X, now Y' ('' when equal)."""
-    for key in sorted(set(saved) | set(now)):
-        a, b = saved.get(key), now.get(key)
-        if isinstance(a, Mapping) and isinstance(b, Mapping):
-            found = first_difference(a, b, f"{prefix}{key}.")
-            if found:
-                return found
-        elif a != b:
-            return f"{prefix}{key}: saved {a!r}, now {b!r}"
-    return ""

@@ -27,8 +27,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from coworld.config import first_difference
 from coworld.errors import CoworldError, DatasetError
-from coworld.sweep.grid import Run, SweepSpec, first_difference
+from coworld.sweep.grid import Run, SweepSpec
 from coworld.sweep.jobs import Job, JobProcess, JobResult, execute, reap_orphan, write_json
 from coworld.sweep.progress import ProgressView, latest_eval
 

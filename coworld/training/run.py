@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from coworld.config import Config, from_dict, to_dict, to_json
+from coworld.config import Config, first_difference, from_dict, to_dict, to_json
 from coworld.errors import ConfigError, CoworldError
 from coworld.storage import write_text_atomically
 
@@ -90,7 +90,7 @@ def check_run_dir(logdir: str | Path, config: Config, info: Mapping[str, Any]) -
     except (json.JSONDecodeError, ConfigError, OSError) as err:
         raise CoworldError(f"{config_path} is unreadable ({err}); nothing was changed: pass a new --logdir") from None
     if saved != config:
-        diff = _diff(to_dict(saved), to_dict(config))
+        diff = first_difference(to_dict(saved), to_dict(config))
         raise CoworldError(
             f"{logdir} holds a run with other settings ({diff}); rerun with the same settings to resume"
             " or pass a new --logdir"
@@ -134,15 +134,3 @@ def load_run(logdir: str | Path) -> tuple[Config, dict[str, Any]]:
     except (json.JSONDecodeError, ConfigError) as err:
         raise CoworldError(f"the run description in {logdir} is unreadable ({err})") from None
     return config, info
-
-
-def _diff(a: Mapping[str, Any], b: Mapping[str, Any], prefix: str = "") -> str:
-    for key in sorted(set(a) | set(b)):
-        va, vb = a.get(key), b.get(key)
-        if isinstance(va, Mapping) and isinstance(vb, Mapping):
-            found = _diff(va, vb, f"{prefix}{key}.")
-            if found:
-                return found
-        elif va != vb:
-            return f"{prefix}{key}: saved {va!r}, now {vb!r}"
-    return ""
