@@ -1,4 +1,4 @@
-"""``coworld dataset``: inspect (info), check (verify) and merge offline datasets."""
+"""``coworld dataset``: inspect (info), check (verify), merge, import and export offline datasets."""
 
 from __future__ import annotations
 
@@ -16,7 +16,7 @@ from coworld.text import count
 
 @click.group()
 def dataset() -> None:
-    """Inspect, check and merge offline datasets (HDF5, format v1)."""
+    """Inspect, check, merge, import (V-D4RL) and export (Minari, npz) offline datasets (HDF5, format v1)."""
 
 
 @dataset.command()
