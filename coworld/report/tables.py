@@ -172,16 +172,19 @@ def results_table(results: Sequence[RunResult], *, variants: bool = False) -> st
 
 
 def value_table(results: Sequence[RunResult]) -> str:
-    """Figure 4(b)'s check as a table: mean critic estimate against the true discounted return, per pair and
-    algorithm (finished runs that measured it)."""
-    measured = [r for r in results if r.value_estimate is not None and r.value_true is not None and not r.variant]
+    """Figure 4(b)'s check as a table: mean critic estimate against the true discounted return, per pair,
+    algorithm and variant (finished runs that measured it)."""
+    measured = [r for r in results if r.value_estimate is not None and r.value_true is not None]
     if not measured:
         return ""
     lines = ["| pair | algorithm | value estimate | true discounted return | runs |", "|---|---|---:|---:|---:|"]
     for target in _rows(measured):
-        for algo in _order({r.algo for r in measured if r.target == target}):
-            runs = [r for r in measured if r.target == target and r.algo == algo]
-            estimate = float(np.mean([r.value_estimate for r in runs]))
-            true = float(np.mean([r.value_true for r in runs]))
-            lines.append(f"| {_pair_label(results, target)} | {algo} | {estimate:.2f} | {true:.2f} | {len(runs)} |")
+        here = [r for r in measured if r.target == target]
+        for algo in _order({r.algo for r in here}):
+            for variant in sorted({r.variant for r in here if r.algo == algo}):  # the full method ('') first
+                runs = [r for r in here if r.algo == algo and r.variant == variant]
+                estimate = float(np.mean([r.value_estimate for r in runs]))
+                true = float(np.mean([r.value_true for r in runs]))
+                name = f"{algo} ({variant})" if variant else algo
+                lines.append(f"| {_pair_label(results, target)} | {name} | {estimate:.2f} | {true:.2f} | {len(runs)} |")
     return "\n".join(lines)

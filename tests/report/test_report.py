@@ -19,7 +19,7 @@ from coworld.report import results as results_module
 from coworld.report import write_report
 from coworld.report.plots import mean_band
 from coworld.report.results import find_run_dirs, learning_curve, load_result, load_results
-from coworld.report.tables import iqm_interval, results_table
+from coworld.report.tables import iqm_interval, results_table, value_table
 
 
 @pytest.fixture
@@ -167,9 +167,10 @@ def test_curves_keep_the_target_evaluations_of_coworld(tmp_path):
 def test_ablation_from_plain_runs_and_from_sweep_records(tmp_path, score_scale):
     target = "toy_reach_shifted"
     for seed, r in enumerate([30.0, 34.0]):
-        make_run(tmp_path, f"full{seed}", algo="coworld", source="toy_reach", target=target, seed=seed, returns=[r])
+        make_run(tmp_path, f"full{seed}", algo="coworld", source="toy_reach", target=target, seed=seed, returns=[r],
+                 value=(5.0 + seed, 4.0))  # fmt: skip
         make_run(tmp_path, f"noalign{seed}", algo="coworld", source="toy_reach", target=target, seed=seed,
-                 returns=[r - 20], coworld={"align": False, "value_reg": True})  # fmt: skip
+                 returns=[r - 20], coworld={"align": False, "value_reg": True}, value=(9.0, 4.0))  # fmt: skip
         make_run(tmp_path, f"lr{seed}", algo="coworld", source="toy_reach", target=target, seed=seed,
                  returns=[r - 10], variant="slow-lr")  # fmt: skip
     results = load_results(tmp_path)
@@ -178,6 +179,11 @@ def test_ablation_from_plain_runs_and_from_sweep_records(tmp_path, score_scale):
     assert table[0] == "| pair | coworld | coworld (no-align) | coworld (slow-lr) |"
     assert table[2] == "| toy_reach → toy_reach_shifted | **32.0 ± 2.0** | 12.0 ± 2.0 | 22.0 ± 2.0 |"
     assert results_table(results).count("\n") == 3  # the main table: CoWorld as configured only
+    values = value_table(results).splitlines()  # the value check tells the variants apart
+    assert values[2:] == [
+        "| toy_reach → toy_reach_shifted | coworld | 5.50 | 4.00 | 2 |",
+        "| toy_reach → toy_reach_shifted | coworld (no-align) | 9.00 | 4.00 | 2 |",
+    ]
     write_report(tmp_path)
     assert (tmp_path / "ablation.png").read_bytes()[:4] == b"\x89PNG"
     assert "## Ablation" in (tmp_path / "report.md").read_text()
