@@ -7,9 +7,10 @@
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -210,6 +211,41 @@ def dataset_fields(task: str) -> dict[str, Any]:
     return {"env_config": env_config, "reference": {k: v for k, v in reference.items() if v is not None}}
 
 
+@contextlib.contextmanager
+def new_dataset(
+    path: Path,
+    task: str,
+    *,
+    quality: str,
+    collector: dict[str, Any],
+    action_size: int,
+    resume: bool,
+    force: bool,
+    compression: str,
+) -> Iterator[DatasetWriter]:
+    """An open ``DatasetWriter`` for ``task`` at ``path``; a file this call made that holds no episode when the block
+    fails is removed (a collection or import that stored nothing leaves no file behind)."""
+    created = force or not path.exists()
+    writer = DatasetWriter(
+        path,
+        task=task,
+        quality=quality,
+        collector=collector,
+        action_size=action_size,
+        resume=resume,
+        force=force,
+        compression=compression,
+        **dataset_fields(task),
+    )
+    try:
+        with writer:
+            yield writer
+    except BaseException:
+        if created and _holds_no_episodes(path):
+            path.unlink(missing_ok=True)
+        raise
+
+
 def collect_random(
     task: str,
     out: str | Path | None = None,
@@ -235,29 +271,19 @@ def collect_random(
         raise ConfigError(f"--workers must be >= 1, got {workers}")
     spec = coworld_envs.task_spec(task)
     path = Path(out) if out is not None else default_dataset_path(task, "random")
-    fields = dataset_fields(task)
     collector = {"algorithm": "random", "policy": "uniform", "preset": None, "seed": seed, "workers": workers}
     collector.update(steps=0, last_eval_return=None)
-    created = force or not path.exists()
-    writer = DatasetWriter(
+    with new_dataset(
         path,
-        task=task,
-        env_config=fields["env_config"],
+        task,
         quality="random",
         collector=collector,
         action_size=spec.action_size,
         resume=resume,
         force=force,
-        reference=fields["reference"],
         compression=compression,
-    )
-    try:
-        with writer:
-            return _collect_random_into(writer, budget, coworld_envs.make_vector, spec, seed, workers, progress)
-    except BaseException:
-        if created and _holds_no_episodes(path):  # a collection that stored nothing leaves no file behind
-            path.unlink(missing_ok=True)
-        raise
+    ) as writer:
+        return _collect_random_into(writer, budget, coworld_envs.make_vector, spec, seed, workers, progress)
 
 
 def _collect_random_into(

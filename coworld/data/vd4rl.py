@@ -33,9 +33,8 @@ from typing import Any
 import h5py
 import numpy as np
 
-from coworld.data.collect import dataset_fields, default_dataset_path
+from coworld.data.collect import default_dataset_path, new_dataset
 from coworld.data.schema import IMAGE_SHAPE
-from coworld.data.writer import DatasetWriter
 from coworld.errors import ConfigError, DatasetError
 from coworld.progress import progress_bar
 
@@ -400,47 +399,29 @@ def import_vd4rl(
         "resize": {"from": source.image_size, "to": side, "filter": RESIZE_FILTER} if resized else None,
         "steps": source.num_steps,
     }
-    fields = dataset_fields(task)
-    created = force or not out.exists()
-    writer = DatasetWriter(
+    with new_dataset(
         out,
-        task=task,
-        env_config=fields["env_config"],
+        task,
         quality=quality,
         collector=collector,
         action_size=spec.action_size,
         resume=resume,
         force=force,
-        reference=fields["reference"],
         compression=compression,
-    )
-    try:
-        with writer:
-            skip = writer.num_episodes
-            if skip:
-                theirs = writer.metadata.get("collector") or {}
-                if theirs.get("source_fingerprint") != collector["source_fingerprint"]:
-                    raise DatasetError(
-                        f"cannot resume {out}: it was imported from other files ({theirs.get('source_path')}); "
-                        f"pass --force to start over"
-                    )
-            episodes = iter_episodes(source, skip=skip, resize=side if resized else None)
-            total = len(source.episodes)
-            with progress_bar(total=total, initial=skip, desc="import", unit="episodes", enabled=progress) as bar:
-                for frames, actions, rewards, terminated in episodes:
-                    writer.add_episode(frames, actions, rewards, terminated)
-                    bar.update()
-            writer.close(complete=True)
-    except BaseException:
-        if created and _holds_no_episodes(out):  # an import that stored nothing leaves no file behind
-            out.unlink(missing_ok=True)
-        raise
+    ) as writer:
+        skip = writer.num_episodes
+        if skip:
+            theirs = writer.metadata.get("collector") or {}
+            if theirs.get("source_fingerprint") != collector["source_fingerprint"]:
+                raise DatasetError(
+                    f"cannot resume {out}: it was imported from other files ({theirs.get('source_path')}); "
+                    f"pass --force to start over"
+                )
+        episodes = iter_episodes(source, skip=skip, resize=side if resized else None)
+        total = len(source.episodes)
+        with progress_bar(total=total, initial=skip, desc="import", unit="episodes", enabled=progress) as bar:
+            for frames, actions, rewards, terminated in episodes:
+                writer.add_episode(frames, actions, rewards, terminated)
+                bar.update()
+        writer.close(complete=True)
     return ImportSummary(out, len(source.episodes), source.num_steps, skip)
-
-
-def _holds_no_episodes(path: Path) -> bool:
-    try:
-        with h5py.File(path, "r") as f:
-            return int(f.attrs.get("num_episodes", 0)) == 0
-    except OSError:
-        return False
