@@ -12,6 +12,15 @@ import os
 os.environ["OMP_NUM_THREADS"] = "1"  # before torch starts its thread pool; inherited by subprocesses
 os.environ["MKL_NUM_THREADS"] = "1"
 
+import signal  # noqa: E402
+
+# A suite started in the background of a non-interactive shell (`bash .ci/run &`) inherits SIGINT ignored, and
+# coworld, like other Unix programs, leaves an ignored signal ignored (test_a_signal_ignored_at_start_stays_ignored).
+# The interrupt tests are about a terminal's Ctrl-C, so the suite takes Python's usual handler back: the commands
+# it starts then begin with SIGINT at its default, as they do from a terminal.
+if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+
 import contextlib  # noqa: E402
 import dataclasses  # noqa: E402
 import importlib.util  # noqa: E402
