@@ -200,6 +200,8 @@ class DMCEnv(gym.Env[np.ndarray, np.ndarray]):
             dm_task = cheetah.Cheetah(random=seed)
         self._dm_task = dm_task
         self._env = control.Environment(physics, dm_task, n_sub_steps=_SUB_STEPS[variant.domain])
+        # Frames per second of simulated time, one frame per agent step (walker 20, cheetah 50).
+        self.metadata = {**self.metadata, "render_fps": 1.0 / (self._env.control_timestep() * settings.action_repeat)}
         size = settings.image_size
         self.observation_space = gym.spaces.Box(0, 255, (size, size, 3), np.uint8)
         self.action_space = gym.spaces.Box(-1.0, 1.0, (task.action_size,), np.float32)

@@ -75,6 +75,8 @@ class MetaWorldEnv(gym.Env[np.ndarray, np.ndarray]):
         sim.max_path_length = settings.episode_length * settings.action_repeat
         sim.seed(seed)
         self.sim = sim
+        # Frames per second of simulated time, one frame per agent step (80 at action repeat 1).
+        self.metadata = {**self.metadata, "render_fps": 1.0 / (sim.dt * settings.action_repeat)}
         camera = mujoco.mj_name2id(sim.model, mujoco.mjtObj.mjOBJ_CAMERA, CAMERA)
         sim.model.cam_pos[camera] = CAMERA_POS
         size = settings.image_size

@@ -70,7 +70,7 @@ class ToyReachEnv(gym.Env[np.ndarray, np.ndarray]):
         task: the :class:`~coworld.envs.registry.TaskSpec`; ``settings``: the resolved overrides.
     """
 
-    metadata = {"render_modes": ["rgb_array"]}
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 10}  # no simulated time: 5 s per 50-step episode
     render_mode = "rgb_array"
 
     def __init__(self, task: TaskSpec, settings: EnvSettings, *, seed: int, variant: ToyVariant) -> None:
