@@ -15,7 +15,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from coworld.report.results import RunResult, load_results, to_csv, write_text
+from coworld.report.results import RunResult, load_results, to_csv
+from coworld.storage import write_text_atomically
 
 
 @dataclass(frozen=True)
@@ -41,7 +42,7 @@ def write_report(root: str | Path, out: str | Path | None = None) -> Report:
     files = []
 
     csv_path = out / "results.csv"
-    write_text(csv_path, to_csv(results))
+    write_text_atomically(csv_path, to_csv(results))
     files.append(csv_path)
 
     figures: list[tuple[str, str]] = []
@@ -56,7 +57,7 @@ def write_report(root: str | Path, out: str | Path | None = None) -> Report:
     files += [out / name for _, name in figures]
 
     md_path = out / "report.md"
-    write_text(md_path, _markdown(root, results, figures))
+    write_text_atomically(md_path, _markdown(root, results, figures))
     files.insert(1, md_path)
     return Report(results, files)
 

@@ -13,7 +13,6 @@ import csv
 import io
 import json
 import math
-import os
 from collections.abc import Iterable, Mapping
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -259,10 +258,3 @@ def to_csv(results: Iterable[RunResult]) -> str:
         row["pair"] = result.pair
         writer.writerow({key: "" if row[key] is None else row[key] for key in CSV_COLUMNS})
     return out.getvalue()
-
-
-def write_text(path: Path, text: str) -> None:
-    """Write a whole file: a temporary name in the same folder, then renamed."""
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)

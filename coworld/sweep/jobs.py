@@ -28,6 +28,7 @@ from typing import IO, Any
 
 import psutil
 
+from coworld.storage import write_text_atomically
 from coworld.sweep.child import PARENT_ENV
 
 CLI = ("-c", "from coworld.sweep.child import die_with_parent; die_with_parent(); from coworld.cli import main; main()")
@@ -89,9 +90,7 @@ def process_record(pid: int) -> dict[str, Any]:
 
 def write_json(path: Path, data: Any) -> None:
     """Write JSON whole: to a temporary file in the same folder, then renamed."""
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(json.dumps(data, indent=2) + "\n")
-    os.replace(tmp, path)
+    write_text_atomically(path, json.dumps(data, indent=2) + "\n")
 
 
 class JobProcess:

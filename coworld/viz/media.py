@@ -17,6 +17,7 @@ import cv2
 import numpy as np
 
 from coworld.errors import CoworldError
+from coworld.storage import write_text_atomically
 
 IMAGE_SUFFIXES = (".png",)
 VIDEO_SUFFIXES = (".mp4", ".gif")
@@ -154,8 +155,8 @@ def write_video(path: str | Path, frames: np.ndarray, fps: int = 10) -> Path:
 def write_text(path: str | Path, text: str) -> Path:
     """Write ``text`` to ``path``, atomically."""
     path = Path(path)
-    with _atomic(path) as tmp:
-        tmp.write_text(text)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_text_atomically(path, text)
     return path
 
 
