@@ -20,6 +20,7 @@ from typing import Any
 
 from coworld import envs
 from coworld.errors import CoworldError, UnknownTaskError
+from coworld.training.logger import read_metrics
 
 ABLATION_SWITCHES = (("align", "no-align"), ("reward_relabel", "no-relabel"), ("value_reg", "no-value-reg"))
 """CoWorld config switch -> the variant name of the run with that term off."""
@@ -98,20 +99,6 @@ def find_run_dirs(root: str | Path) -> list[Path]:
     return found
 
 
-def read_records(run_dir: Path) -> list[dict[str, Any]]:
-    """The records of ``metrics.jsonl``; a line cut short by a kill is skipped."""
-    path = run_dir / "metrics.jsonl"
-    if not path.exists():
-        return []
-    records = []
-    for line in path.read_text().splitlines():
-        try:
-            records.append(json.loads(line))
-        except ValueError:
-            continue
-    return records
-
-
 def target_eval_return(record: Mapping[str, Any], algo: str) -> float | None:
     """The target agent's evaluation return in one metrics record, or None.
 
@@ -128,7 +115,7 @@ def target_eval_return(record: Mapping[str, Any], algo: str) -> float | None:
 
 def learning_curve(run_dir: Path, algo: str, records: list[dict[str, Any]] | None = None) -> list[tuple[int, float]]:
     """(target updates, evaluation return) of each evaluation during training, in order."""
-    records = read_records(run_dir) if records is None else records
+    records = read_metrics(run_dir) if records is None else records
     curve = []
     for record in records:
         value = target_eval_return(record, algo)
@@ -220,7 +207,7 @@ def load_result(run_dir: Path) -> RunResult:
         true = _mean(result.get("value_true") or [])
     except (OSError, ValueError, KeyError, TypeError):
         pass
-    records = read_records(run_dir)
+    records = read_metrics(run_dir)
     return RunResult(
         run_dir=str(run_dir),
         algo=algo,

@@ -90,11 +90,17 @@ class Logger:
 
 
 def read_metrics(logdir: str | Path) -> list[dict[str, Any]]:
-    """The records of ``logdir/metrics.jsonl``, in order."""
+    """The records of ``logdir/metrics.jsonl``, in order; a line cut short by a kill is skipped."""
     path = Path(logdir) / "metrics.jsonl"
     if not path.exists():
         return []
-    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+    records = []
+    for line in path.read_text().splitlines():
+        try:
+            records.append(json.loads(line))
+        except ValueError:
+            continue
+    return records
 
 
 class Rate:

@@ -30,6 +30,9 @@ def test_logger_writes_jsonl_and_tensorboard(tmp_path):
     assert [r["step"] for r in records] == [10, 20]
     assert records[0]["wm/loss"] == 1.5 and records[0]["eval/return"] is None
     assert list((tmp_path / "tb").glob("events.out.tfevents.*"))
+    with open(tmp_path / "metrics.jsonl", "a") as f:
+        f.write('{"step": 30, "wm/lo')  # a kill in the middle of a write
+    assert [r["step"] for r in read_metrics(tmp_path)] == [10, 20]
 
 
 def test_rate_counts_per_second_over_each_window(monkeypatch):
