@@ -35,6 +35,11 @@ def read_lock(path: Path) -> dict[str, Any] | None:
         return {}  # unreadable: treated as held, the error message says how to remove it
 
 
+def process_record(pid: int) -> dict[str, Any]:
+    """What identifies a process across PID reuse: host, PID and start time."""
+    return {"host": socket.gethostname(), "pid": pid, "started": psutil.Process(pid).create_time()}
+
+
 def holder_alive(holder: dict[str, Any]) -> bool:
     """Whether the process recorded in a lock still runs (locks from other hosts count as alive)."""
     if holder.get("host") != socket.gethostname():
@@ -52,8 +57,7 @@ class WriterLock:
     def __init__(self, path: Path) -> None:
         self.path = lock_path(path)
         self._dataset = path
-        me = psutil.Process()
-        self._record = {"host": socket.gethostname(), "pid": me.pid, "started": me.create_time()}
+        self._record = process_record(os.getpid())
         for _ in range(3):
             try:
                 created = self._try_create()

@@ -28,6 +28,7 @@ from typing import IO, Any
 
 import psutil
 
+from coworld.data.lock import holder_alive, process_record
 from coworld.storage import write_text_atomically
 from coworld.sweep.child import PARENT_ENV
 
@@ -81,11 +82,6 @@ def spawn(argv: list[str], log: IO[bytes], threads: int) -> subprocess.Popen:
         env=env,
         start_new_session=True,
     )
-
-
-def process_record(pid: int) -> dict[str, Any]:
-    """What identifies a process across PID reuse: host, PID and start time."""
-    return {"host": socket.gethostname(), "pid": pid, "started": psutil.Process(pid).create_time()}
 
 
 def write_json(path: Path, data: Any) -> None:
@@ -227,13 +223,13 @@ def reap_orphan(pid_file: Path) -> bool:
     if record.get("host") != socket.gethostname():
         return False
     killed = False
-    try:
-        process = psutil.Process(int(record["pid"]))
-        if abs(process.create_time() - float(record["started"])) < 1.0:
+    if holder_alive(record):  # the recorded process itself, not another that reuses its PID
+        try:
+            process = psutil.Process(int(record["pid"]))
             _signal_group(process.pid, signal.SIGKILL)
             process.wait(timeout=10)
             killed = True
-    except (psutil.NoSuchProcess, psutil.TimeoutExpired, KeyError, TypeError, ValueError):
-        pass
+        except (psutil.NoSuchProcess, psutil.TimeoutExpired):
+            pass
     pid_file.unlink(missing_ok=True)
     return killed
