@@ -108,8 +108,10 @@ class WorldModelConfig:
     """Weight of the reward log-likelihood."""
     discount_scale: Annotated[float, NON_NEGATIVE] = 1.0
     """Weight of the discount (continuation) log-likelihood."""
-    pred_discount: bool = True
-    """Learn a discount head from terminal flags (else imagination uses the constant discount)."""
+    pred_discount: bool = False
+    """Learn a discount head from terminal flags (else imagination uses the constant discount). Off, as in
+    DreamerV2's DMC config and the authors' release: no task here terminates, and an untrained head starts at
+    P(continue) = 0.5, halving imagination's discount until it has learned."""
     unimix: Annotated[float, Range(0, 1, high_open=True)] = 0.0
     """Uniform mixture on the categorical latents (0 = DreamerV2; 0.01 = DreamerV3's)."""
     lr: Annotated[float, POSITIVE] = 2e-4

@@ -108,13 +108,13 @@ class DreamerV2:
         ``obs``: uint8 images ``(N, H, W, C)``. ``state``: None at the start of every episode, else what the
         previous call returned. ``is_first (N,)`` resets the latent and previous action of single rows (for
         vectorised envs). ``mode``: 'train' samples the actor (plus ``train.expl_noise``), 'eval' takes its
-        mode, 'random' draws uniform actions in ``[-1, 1]`` without running the model and returns state None.
+        mode, 'random' draws uniform actions in ``[-1, 1]`` (the prefill) while still filtering the latent, so a
+        run that switches from 'random' to 'train' mid-episode continues the episode's state. The returned
+        state holds the action actually returned, noise included: the next step conditions on what was executed.
         Returns float32 actions ``(N, A)`` and the new state.
         """
         n = obs.shape[0]
-        if mode == "random":
-            return (torch.rand(n, self.action_size) * 2.0 - 1.0).numpy(), None
-        if mode not in ("train", "eval"):
+        if mode not in ("train", "eval", "random"):
             raise ValueError(f"unknown policy mode {mode!r}; use 'train', 'eval' or 'random'")
         if state is None:
             latent, action = self.world_model.rssm.initial(n, self.device), self._zero_action(n)
@@ -128,8 +128,11 @@ class DreamerV2:
         with self._autocast():
             embed = self.world_model.encode(image)
             latent, _ = self.world_model.rssm.obs_step(latent, action, embed, first)
-            dist = self.actor_critic.actor(self.world_model.features(latent))
-            action = dist.mode if mode == "eval" else dist.sample()
+            if mode == "random":
+                action = torch.rand(n, self.action_size, device=self.device) * 2.0 - 1.0
+            else:
+                dist = self.actor_critic.actor(self.world_model.features(latent))
+                action = dist.mode if mode == "eval" else dist.sample()
         action = action.float()
         noise = self.config.train.expl_noise
         if mode == "train" and noise > 0.0:
@@ -205,10 +208,10 @@ class DreamerV2:
         ``post``: states with batch ``(B, T)`` (from :meth:`train_world_model`). ``value_regulariser``: extra
         critic loss, see :meth:`ActorCritic.losses`; give it parameters that need no gradient (or wrap its
         network in :func:`coworld.models.networks.frozen_parameters`). ``is_terminal (B, T)``: true
-        continuation of the start states. The slow critic is refreshed first, per ``slow_target_every``.
+        continuation of the start states. The slow critic is refreshed after the optimiser steps, per
+        ``slow_target_every`` (DreamerV2's order: the first update copies the stepped critic whole).
         """
         ac = self.actor_critic
-        ac.update_slow_target()
         start = flatten_states(post)
         terminal = None if is_terminal is None else torch.as_tensor(is_terminal, device=self.device).reshape(-1)
         with frozen_parameters(self.world_model), self._autocast():
@@ -222,6 +225,7 @@ class DreamerV2:
         metrics["critic/grad_norm"] = torch.nn.utils.clip_grad_norm_(ac.critic.parameters(), clip)
         self.actor_opt.step()
         self.critic_opt.step()
+        ac.update_slow_target()
         metrics["actor/loss"] = terms["actor"].detach()
         metrics["critic/loss"] = terms["critic"].detach()
         return _to_floats(metrics)

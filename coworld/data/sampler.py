@@ -26,7 +26,8 @@ class SequenceSampler:
     """Endless iterator of batches in the DreamerV2 step convention.
 
     Each batch holds ``image`` (B, L, H, W, C) uint8, ``action`` (B, L, A) float32, ``reward`` (B, L) float32 and
-    ``is_first``, ``is_last``, ``is_terminal`` (B, L) bool (see :mod:`coworld.data.reader` for their meaning).
+    ``is_first``, ``is_last``, ``is_terminal`` (B, L) bool (see :mod:`coworld.data.reader` for their meaning;
+    ``is_first`` is also set on every window's first step, so each window starts from a fresh latent).
 
     The sampler pickles (for DataLoader workers): the file is reopened in each process, and a sampler running in a
     PyTorch DataLoader worker seeds itself from ``(seed, worker id)`` so workers draw different windows. In "ram"
@@ -88,11 +89,13 @@ class SequenceSampler:
             for b in np.argsort(starts, kind="stable"):  # file order: neighbouring windows share cached chunks
                 self.dataset.read_steps(int(starts[b]), image[b])
         s = self.steps
+        is_first = s.is_first[index]
+        is_first[:, 0] = True  # a window starts from a fresh latent, with no previous action (DreamerV2)
         return {
             "image": image,
             "action": s.action[index],
             "reward": s.reward[index],
-            "is_first": s.is_first[index],
+            "is_first": is_first,
             "is_last": s.is_last[index],
             "is_terminal": s.is_terminal[index],
         }

@@ -116,9 +116,10 @@ class ActorCritic(nn.Module):
     @torch.no_grad()
     def update_slow_target(self) -> None:
         """Every ``slow_target_every`` calls (starting with the first), mix the critic into its slow target:
-        ``slow <- fraction * critic + (1 - fraction) * slow``."""
+        ``slow <- fraction * critic + (1 - fraction) * slow``; the first call copies it whole (DreamerV2). Called
+        after the critic's optimiser step."""
         if int(self.updates) % self.config.slow_target_every == 0:
-            mix = self.config.slow_target_fraction
+            mix = 1.0 if int(self.updates) == 0 else self.config.slow_target_fraction
             for slow, fast in zip(self.slow_critic.parameters(), self.critic.parameters(), strict=True):
                 slow.mul_(1.0 - mix).add_(fast, alpha=mix)
         self.updates += 1

@@ -21,7 +21,11 @@ from typing import Any
 from coworld import envs
 from coworld.errors import CoworldError, UnknownTaskError
 from coworld.training.logger import read_metrics
+from coworld.training.run import run_description
 
+ONLINE_ALGO = "dreamerv2-online"
+"""How a report names the online DreamerV2 agent that a ``coworld collect --policy dreamerv2`` run trained in the
+target task itself (its run folder sits beside the dataset): a reference row, not an offline method."""
 ABLATION_SWITCHES = (("align", "no-align"), ("reward_relabel", "no-relabel"), ("value_reg", "no-value-reg"))
 """CoWorld config switch -> the variant name of the run with that term off."""
 
@@ -94,7 +98,8 @@ def find_run_dirs(root: str | Path) -> list[Path]:
             info = json.loads(path.read_text())
         except (OSError, ValueError):
             continue
-        if isinstance(info, dict) and "algo" in info and "target" in info:  # not a collector's run folder
+        info = run_description(info)  # a collection's online dreamerv2 run counts as the run it is
+        if isinstance(info, dict) and "algo" in info and "target" in info:
             found.append(path.parent)
     return found
 
@@ -187,8 +192,10 @@ def _mean(values: Any) -> float | None:
 
 def load_result(run_dir: Path) -> RunResult:
     """The :class:`RunResult` of one run folder."""
-    info = json.loads((run_dir / "run.json").read_text())
+    info = run_description(json.loads((run_dir / "run.json").read_text()))
     algo, target = str(info["algo"]), str(info["target"])
+    if info.get("online"):
+        algo = ONLINE_ALGO  # the agent a `coworld collect --policy dreamerv2` trained in the target task itself
     try:
         seed = int(json.loads((run_dir / "config.json").read_text())["seed"])
     except (OSError, ValueError, KeyError):

@@ -30,7 +30,7 @@ from coworld.errors import CoworldError, DatasetError
 from coworld.storage import check_writable
 from coworld.training.logger import Logger
 from coworld.training.online import OnlineTrainer
-from coworld.training.run import prepare_run_dir, preset_warnings, resolve_device, seed_everything
+from coworld.training.run import collector_run_info, prepare_run_dir, preset_warnings, resolve_device, seed_everything
 
 TRAINED_QUALITIES = ("medium-replay", "medium", "expert")
 
@@ -91,7 +91,13 @@ def collect_dreamerv2(
     if stop_return is None:
         stop_return = default_stop_return(task, quality)
     limit = max_steps if max_steps is not None else config.train.steps
-    info = {"task": task, "quality": quality, "dataset": str(out), "max_steps": limit, "stop_return": stop_return}
+    info = {
+        **collector_run_info(task, preset),
+        "quality": quality,
+        "dataset": str(out),
+        "max_steps": limit,
+        "stop_return": stop_return,
+    }
     for message in preset_warnings(preset, config.device) if warn is not None else ():
         warn(message)
     resumed = prepare_run_dir(run_dir, config, info)

@@ -185,9 +185,10 @@ class OnlineTrainer:
             while self.steps < max_steps:
                 interrupt.check()
                 mode = "random" if self.steps < cfg.prefill else "train"
+                # The agent adds its own exploration noise (train.expl_noise), so the action the latent conditions
+                # on is the one executed; during the prefill it still filters the latent, so the first trained
+                # action continues the running episode's state rather than restarting it mid-episode.
                 action, self._state = self.agent.policy(self._obs, self._state, mode=mode, is_first=self._is_first)
-                if cfg.expl_noise and mode == "train":
-                    action = np.clip(action + cfg.expl_noise * np.random.randn(*action.shape), -1, 1)
                 action = action.astype(np.float32)
                 obs, reward, terminated, truncated, info = self._venv.step(action)
                 # With cut_episodes, the run ends at exactly max_steps rows and the running episodes end there

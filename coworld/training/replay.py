@@ -66,7 +66,9 @@ class Replay:
         starts = np.maximum(lengths - seq_len + 1, 1)
         which = self._rng.choice(len(self.episodes), size=batch_size, p=starts / starts.sum())
         windows = [self._window(int(i), int(self._rng.integers(starts[i])), seq_len) for i in which]
-        return {key: np.stack([w[key] for w in windows]) for key in KEYS}
+        batch = {key: np.stack([w[key] for w in windows]) for key in KEYS}
+        batch["is_first"][:, 0] = True  # a window starts from a fresh latent, with no previous action (DreamerV2)
+        return batch
 
     def _window(self, index: int, start: int, seq_len: int) -> dict[str, np.ndarray]:
         # An episode shorter than seq_len continues into the following ones, with is_first marking the seams.

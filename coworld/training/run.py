@@ -123,8 +123,14 @@ def prepare_run_dir(logdir: str | Path, config: Config, info: Mapping[str, Any])
     return False
 
 
+def collector_run_info(task: str, preset: str) -> dict[str, Any]:
+    """The run description of the online DreamerV2 agent that ``coworld collect --policy dreamerv2`` trains: a
+    dreamerv2 run like any other (``online`` says it learned in its environment, not from a dataset)."""
+    return {"algo": "dreamerv2", "source": None, "target": task, "task": task, "preset": preset, "online": True}
+
+
 def load_run(logdir: str | Path) -> tuple[Config, dict[str, Any]]:
-    """The config and run description saved by :func:`prepare_run_dir`."""
+    """The config and run description saved by :func:`prepare_run_dir` (see :func:`run_description`)."""
     logdir = Path(logdir)
     try:
         config = from_dict(json.loads((logdir / "config.json").read_text()))
@@ -133,4 +139,12 @@ def load_run(logdir: str | Path) -> tuple[Config, dict[str, Any]]:
         raise CoworldError(f"{logdir} is not a coworld run folder (no config.json / run.json)") from None
     except (json.JSONDecodeError, ConfigError) as err:
         raise CoworldError(f"the run description in {logdir} is unreadable ({err})") from None
-    return config, info
+    return config, run_description(info)
+
+
+def run_description(info: Any) -> Any:
+    """A run description as read from ``run.json``, with a collector's older description (only its ``task``
+    and ``quality``, no ``algo``) completed as the online dreamerv2 run it is; anything else as it is."""
+    if isinstance(info, dict) and "algo" not in info and "task" in info and "quality" in info:
+        return {**collector_run_info(str(info["task"]), str(info.get("preset", "?"))), **info}
+    return info

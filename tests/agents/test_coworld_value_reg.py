@@ -1,14 +1,14 @@
-"""Eq. 6 at work: on the toy pair, the max-min term lowers the target critic's overestimation off the dataset.
+"""Eq. 6 at work: where the source critic is lower, the max-min term pulls the target critic down.
 
-The source agent learns toy_reach_shifted online; the target agent then learns toy_reach offline from a small
-random-policy dataset, twice from the same initial weights and the same batches: with and without the max-min
-term. Each target policy then runs in the target environment (states the random data never visited), and the
-critic's estimate is compared with the discounted return actually received from the same states.
+The source critic is fixed at 0 everywhere (its weights zeroed), so ``max(zeta * v_T, sg(v_S))`` is active wherever
+the target critic is positive. The target agent then learns toy_reach offline from a small random-policy dataset,
+twice from the same initial weights and the same batches: with and without the term. Its critic's estimates in the
+target environment must be clearly lower with the term, and the term must have been active.
 
-Measured (this file's settings, evaluation seeded per episode): without the term the estimate is 7.1 against a true
-0.2; with it (zeta 2, active on 49% of the imagined states) 4.9 against 0.2. An earlier measurement under the
-previous evaluation protocol found that with zeta 1 the two critics' scales are close in this toy and the term is
-active on 5% of states, lowering the estimate only from 7.12 to 7.11.
+An earlier version of this test relied on the offline critic overestimating on this setup (7.1 against a true 0.2).
+Once the loop followed DreamerV2 (no discount head, windows starting from a fresh latent, the slow critic copied
+after its step) the same setup underestimated instead (-5.5 below the true value), so the premise no longer held;
+the term's effect is now tested where it is known to apply.
 """
 
 from __future__ import annotations
@@ -19,56 +19,25 @@ import dataclasses
 import numpy as np
 import torch
 
-from coworld.agents.coworld import CoWorld, _SourceLearner
+from coworld.agents.coworld import CoWorld
 from coworld.config import make_config
-from coworld.data import DatasetWriter, open_dataset
-from coworld.data.collect import dataset_fields
+from coworld.data import open_dataset
 from coworld.training.evaluate import evaluate
-from coworld.training.logger import Logger
-from coworld.training.online import OnlineTrainer
 
 
-def test_max_min_term_lowers_overestimation(tmp_path, toy_dataset_writer):
+def test_max_min_term_pulls_the_target_critic_down_to_a_lower_source_critic(toy_dataset_writer, tmp_path):
     torch.manual_seed(0)
     config = make_config(
         "tiny",
-        [
-            "device=cpu",
-            "train.prefill=200",
-            "train.train_every=2",
-            "train.eval_every=100000",
-            "coworld.align=false",
-            "coworld.reward_relabel=false",
-            "coworld.alpha=1.0",
-            "coworld.zeta=2.0",
-        ],
+        ["device=cpu", "coworld.align=false", "coworld.reward_relabel=false", "coworld.alpha=1.0"],
     )
     agent = CoWorld(config=config, action_size=2, device="cpu")
-    with (
-        Logger(tmp_path / "source", outputs=("jsonl",)) as logger,
-        DatasetWriter(
-            tmp_path / "source.h5",
-            task="toy_reach_shifted",
-            quality="medium-replay",
-            collector={},
-            action_size=2,
-            **dataset_fields("toy_reach_shifted"),
-        ) as writer,
-    ):
-        trainer = OnlineTrainer(
-            agent=_SourceLearner(agent),
-            task="toy_reach_shifted",
-            config=config,
-            logdir=tmp_path / "source",
-            writer=writer,
-            logger=logger,
-        )
-        trainer.run(max_steps=700, progress=False)
-        trainer.close()
-
+    with torch.no_grad():
+        for param in agent.source.actor_critic.critic.parameters():
+            param.zero_()
     data_path = toy_dataset_writer(tmp_path / "target.h5", "toy_reach", episodes=10)
     init = copy.deepcopy(agent.target.state_dict())  # both runs start from these weights
-    overestimation, active = {}, {}
+    estimate, active = {}, {}
     with open_dataset(data_path) as data:
         for value_reg in (False, True):
             agent.config = dataclasses.replace(config, coworld=dataclasses.replace(config.coworld, value_reg=value_reg))
@@ -78,8 +47,8 @@ def test_max_min_term_lowers_overestimation(tmp_path, toy_dataset_writer):
             for _ in range(150):
                 metrics = agent.train_target(next(batches))
             active[value_reg] = metrics.get("target/coworld/maxmin_active")
-            result, _ = evaluate(agent, "toy_reach", episodes=6, seed=7, discount=0.99)
-            overestimation[value_reg] = float(np.mean(result.value_estimate) - np.mean(result.value_true))
+            result, _ = evaluate(agent, "toy_reach", episodes=4, seed=7, discount=0.99)
+            estimate[value_reg] = float(np.mean(result.value_estimate))
     assert active[True] is not None and active[True] > 0.0  # the term was in play
-    assert overestimation[False] > 1.0  # the offline critic does overestimate off the data
-    assert overestimation[True] < 0.75 * overestimation[False], overestimation
+    assert estimate[False] > 1.0  # rewards are positive: an unregularised critic learns positive values
+    assert estimate[True] < 0.5 * estimate[False], estimate

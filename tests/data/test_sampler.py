@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from coworld.data import open_dataset
+from coworld.data.sampler import SequenceSampler
 from coworld.errors import ConfigError, DatasetError
 
 B, L = 16, 10
@@ -50,7 +51,9 @@ def test_windows_are_contiguous_slices_of_the_step_space(
                 k = _window_start(batch, b, oracle)
                 assert k + L <= len(oracle["reward"])  # never past the end of the data
                 for key, value in batch.items():
-                    np.testing.assert_array_equal(value[b], oracle[key][k : k + L], err_msg=key)
+                    first = 1 if key == "is_first" else 0  # every window starts as an episode start
+                    np.testing.assert_array_equal(value[b, first:], oracle[key][k + first : k + L], err_msg=key)
+                assert batch["is_first"][b, 0]
                 # a window crosses into another episode only when it started in an episode shorter than L
                 if batch["is_first"][b, 1:].any():
                     episode = int(np.searchsorted(np.cumsum(lengths), k, side="right"))
@@ -142,3 +145,12 @@ def test_dataloader_workers_each_open_the_file_and_draw_their_own_windows(
             np.testing.assert_array_equal(batch["image"][b], oracle["image"][k : k + L])
     # batches 0 and 1 come from different workers (round robin): different seeds, different windows
     assert not np.array_equal(batches[0]["image"], batches[1]["image"])
+
+
+def test_dataset_windows_start_from_a_fresh_latent_even_mid_episode(dataset_path: Path) -> None:
+    with open_dataset(dataset_path) as data:
+        sampler = SequenceSampler(data, batch_size=64, seq_len=4, seed=0)
+        batch = next(sampler)
+        starts = sampler.sample_starts(np.random.default_rng(0))
+        assert not sampler.steps.is_first[starts].all()  # the data do hold windows that start mid-episode
+    assert batch["is_first"][:, 0].all()

@@ -163,7 +163,14 @@ def test_slow_target_fraction_mixes(tiny: Config) -> None:
     with torch.no_grad():
         for p in ac.critic.parameters():
             p.add_(1.0)
-    ac.update_slow_target()
+    ac.update_slow_target()  # the first call copies the critic whole (DreamerV2)
+    for new, fast in zip(ac.slow_critic.parameters(), ac.critic.parameters(), strict=True):
+        torch.testing.assert_close(new, fast)
+    before = [p.clone() for p in ac.slow_critic.parameters()]
+    with torch.no_grad():
+        for p in ac.critic.parameters():
+            p.add_(1.0)
+    ac.update_slow_target()  # later calls mix
     for old, new, fast in zip(before, ac.slow_critic.parameters(), ac.critic.parameters(), strict=True):
         torch.testing.assert_close(new, 0.75 * old + 0.25 * fast)
 

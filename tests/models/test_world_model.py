@@ -22,6 +22,7 @@ def test_preprocess_image_layout_and_range() -> None:
 
 
 def test_loss_terms_shapes_and_total(tiny: Config) -> None:
+    tiny = dataclasses.replace(tiny, world_model=dataclasses.replace(tiny.world_model, pred_discount=True))
     model = WorldModel(config=tiny.world_model, action_size=ACTION_SIZE)
     batch = random_batch(batch=2, length=5)
     terms, aux = model.loss(batch)
@@ -48,6 +49,7 @@ def test_no_discount_head_without_pred_discount(tiny: Config) -> None:
 
 
 def test_scales_weight_the_terms(tiny: Config) -> None:
+    tiny = dataclasses.replace(tiny, world_model=dataclasses.replace(tiny.world_model, pred_discount=True))
     batch = random_batch()
     model = WorldModel(config=tiny.world_model, action_size=ACTION_SIZE)
     scaled = WorldModel(config=dataclasses.replace(tiny.world_model, image_scale=0.0, free_nats=0.0), action_size=3)

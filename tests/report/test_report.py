@@ -191,10 +191,13 @@ def test_ablation_from_plain_runs_and_from_sweep_records(tmp_path, score_scale):
 
 def test_run_folders_are_found_by_their_run_json(tmp_path):
     make_run(tmp_path / "a", "r1", algo="curl", target="toy_reach", seed=0, returns=[1.0])
-    collector = tmp_path / "datasets" / "toy_reach-medium_replay.run"  # a collector's run folder: not a run
+    collector = tmp_path / "datasets" / "toy_reach-medium_replay.run"  # the online dreamerv2 run of a collection
     collector.mkdir(parents=True)
     (collector / "run.json").write_text(json.dumps({"task": "toy_reach", "quality": "medium-replay"}))
-    assert find_run_dirs(tmp_path) == [tmp_path / "a" / "r1"]
+    (tmp_path / "notes").mkdir()
+    (tmp_path / "notes" / "run.json").write_text(json.dumps({"something": "else"}))  # not a run description
+    assert find_run_dirs(tmp_path) == [tmp_path / "a" / "r1", collector]
+    assert load_result(collector).algo == "dreamerv2-online"
     empty = tmp_path / "empty"
     empty.mkdir()
     out = CliRunner().invoke(main, ["report", str(empty)])
