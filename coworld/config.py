@@ -149,8 +149,18 @@ class ActorCriticConfig:
     """Actor gradient: 'dynamics' (backprop through the model, DMC default) or 'reinforce'."""
     actor_min_std: Annotated[float, NON_NEGATIVE] = 0.1
     """Lower bound of the actor's standard deviation."""
-    actor_dist: Annotated[str, OneOf(("trunc_normal", "tanh_normal"))] = "trunc_normal"
-    """Actor distribution over [-1, 1] actions: 'trunc_normal' (DreamerV2's DMC choice) or 'tanh_normal'."""
+    actor_max_std: Annotated[float, POSITIVE] = 1.0
+    """Upper bound of the actor's standard deviation, 'normal' only (DreamerV3: 1.0)."""
+    actor_dist: Annotated[str, OneOf(("trunc_normal", "tanh_normal", "normal"))] = "trunc_normal"
+    """Actor distribution: 'trunc_normal' (DreamerV2's DMC choice: truncated to [-1, 1]), 'tanh_normal', or 'normal'
+    (DreamerV3's: ``Normal(tanh(m), std)`` with std in [actor_min_std, actor_max_std], samples not truncated in
+    imagination and clipped to [-1, 1] when acted). With a truncated normal, widening the spread moves the mean
+    action away from a bound, so a return that wants a bound also shrinks the spread; an untruncated one does not."""
+    return_norm: bool = False
+    """Divide the actor's returns by ``max(1, P95 - P5)`` of recent imagined returns (an EMA of the percentiles),
+    so the entropy bonus means the same at any return scale (DreamerV3's return normalisation)."""
+    return_norm_decay: Annotated[float, Range(0, 1, high_open=True)] = 0.99
+    """EMA decay of the return percentiles (DreamerV3: 0.99)."""
     slow_target_every: Annotated[int, AT_LEAST_1] = 100
     """Updates between copies of the critic into its slow target."""
     slow_target_fraction: Annotated[float, Range(0, 1, low_open=True)] = 1.0
@@ -312,6 +322,40 @@ class Config:
 PRESETS: dict[str, dict[str, Any]] = {
     # The paper's Table 3, for a GPU.
     "paper": {},
+    # Real learning on 2 CPU cores: the tiny networks at DreamerV2's replay ratio and above (256 replayed steps
+    # per env step: batch 16 x 32 every 2 steps), sizes the side-by-side comparison with a reference Dreamer used
+    # (benchmarks/RESULTS.md, "Learning on the CPU").
+    "cpu": {
+        "world_model.cnn_depth": 8,
+        "world_model.deter": 64,
+        "world_model.hidden": 64,
+        "world_model.stoch": 8,
+        "world_model.classes": 8,
+        "world_model.mlp_units": 64,
+        "world_model.mlp_layers": 2,
+        "world_model.lr": 6e-4,
+        "actor_critic.units": 64,
+        "actor_critic.layers": 2,
+        "actor_critic.horizon": 10,
+        "actor_critic.discount": 0.99,
+        "actor_critic.actor_lr": 2e-4,
+        "actor_critic.critic_lr": 3e-4,
+        "actor_critic.slow_target_every": 20,
+        "train.batch_size": 16,
+        "train.seq_len": 32,
+        "train.prefill": 500,
+        "train.pretrain_updates": 10,
+        "train.train_every": 2,
+        "train.steps": 100_000,
+        "train.eval_every": 1000,
+        "train.eval_episodes": 10,
+        "train.log_every": 500,
+        "train.checkpoint_every": 1000,
+        "coworld.pretrain_steps": 4000,
+        "coworld.iterations": 4,
+        "coworld.target_updates": 500,
+        "coworld.source_updates": 250,
+    },
     # Small enough that a whole collect -> train -> eval runs on 2 CPU cores in minutes.
     "tiny": {
         "world_model.cnn_depth": 8,

@@ -133,7 +133,7 @@ class DreamerV2:
             else:
                 dist = self.actor_critic.actor(self.world_model.features(latent))
                 action = dist.mode if mode == "eval" else dist.sample()
-        action = action.float()
+        action = action.float().clamp(-1.0, 1.0)  # an untruncated actor's samples are clipped when executed
         noise = self.config.train.expl_noise
         if mode == "train" and noise > 0.0:
             action = (action + noise * torch.randn_like(action)).clamp(-1.0, 1.0)

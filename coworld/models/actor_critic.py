@@ -11,6 +11,7 @@ leading ``(H + 1, N)``; index 0 is the start state (its ``action`` entry is zero
 
 The critic regresses ``v(z_t)`` to ``sg(R_t)`` for ``t < H``; the actor maximises ``R_{t+1}`` for ``t < H-1``
 (backpropagating through the dynamics) or uses REINFORCE with the slow critic as baseline, plus an entropy bonus.
+With ``return_norm`` the actor's returns are first divided by ``max(1, P95 - P5)`` of recent returns (DreamerV3).
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ from torch import Tensor, nn
 from coworld.config import ActorCriticConfig
 from coworld.errors import ConfigError
 from coworld.losses.dreamer import actor_loss, critic_loss, lambda_return
-from coworld.models.distributions import TanhNormal, TruncatedNormal, UnitGaussian
+from coworld.models.distributions import Normal, TanhNormal, TruncatedNormal, UnitGaussian
 from coworld.models.networks import MLP
 from coworld.models.rssm import State, stack_states
 from coworld.models.world_model import WorldModel
@@ -36,7 +37,7 @@ __all__ = ["Actor", "ActorCritic", "Critic", "ValueRegulariser", "flatten_states
 ValueRegulariser = Callable[[Tensor, Tensor], Tensor]
 """``(feat (H, N, F), value (H, N)) -> (H, N)``: an extra per-state critic loss (CoWorld's Eq. 6 term)."""
 
-ACTOR_DISTS = ("trunc_normal", "tanh_normal")
+ACTOR_DISTS = ("trunc_normal", "tanh_normal", "normal")
 ACTOR_GRADS = ("dynamics", "reinforce")
 
 
@@ -52,22 +53,37 @@ class Actor(nn.Module):
 
     ``trunc_normal`` (DreamerV2's DMC choice): ``loc = tanh(m)``, ``scale = 2 * sigmoid(s / 2) + min_std``,
     truncated to ``[-1, 1]``. ``tanh_normal``: ``Normal(m, softplus(s + softplus^-1(1)) + min_std)`` squashed
-    by ``tanh``.
+    by ``tanh``. ``normal`` (DreamerV3's): ``Normal(tanh(m), (max_std - min_std) * sigmoid(s + 2) + min_std)``,
+    not truncated (the agent clips what it executes).
     """
 
-    def __init__(self, *, feat_size: int, action_size: int, units: int, layers: int, dist: str, min_std: float):
+    def __init__(
+        self,
+        *,
+        feat_size: int,
+        action_size: int,
+        units: int,
+        layers: int,
+        dist: str,
+        min_std: float,
+        max_std: float = 1.0,
+    ) -> None:
         super().__init__()
         if dist not in ACTOR_DISTS:
             raise ConfigError(f"unknown actor_critic.actor_dist {dist!r}; choose one of: {', '.join(ACTOR_DISTS)}")
         self.dist = dist
         self.min_std = min_std
+        self.max_std = max_std
         self.mlp = MLP(in_size=feat_size, out_size=2 * action_size, units=units, layers=layers)
 
-    def forward(self, feat: Tensor) -> TruncatedNormal | TanhNormal:
+    def forward(self, feat: Tensor) -> TruncatedNormal | TanhNormal | Normal:
         """``(..., F)`` -> action distribution, event ``(A,)``."""
         mean, std = self.mlp(feat).float().chunk(2, dim=-1)
         if self.dist == "trunc_normal":
             return TruncatedNormal(torch.tanh(mean), 2.0 * torch.sigmoid(std / 2.0) + self.min_std, -1.0, 1.0)
+        if self.dist == "normal":
+            spread = (self.max_std - self.min_std) * torch.sigmoid(std + 2.0) + self.min_std
+            return Normal(torch.tanh(mean), spread)
         return TanhNormal(mean, F.softplus(std + math.log(math.e - 1.0)) + self.min_std)
 
 
@@ -87,6 +103,7 @@ class ActorCritic(nn.Module):
     """Actor, critic and the critic's slow target, with DreamerV2's imagination losses."""
 
     updates: Tensor
+    return_range: Tensor
 
     def __init__(self, *, config: ActorCriticConfig, feat_size: int, action_size: int) -> None:
         super().__init__()
@@ -103,11 +120,27 @@ class ActorCritic(nn.Module):
             layers=config.layers,
             dist=config.actor_dist,
             min_std=config.actor_min_std,
+            max_std=config.actor_max_std,
         )
         self.critic = Critic(feat_size=feat_size, units=config.units, layers=config.layers)
         self.slow_critic = copy.deepcopy(self.critic)
         self.slow_critic.requires_grad_(False)
         self.register_buffer("updates", torch.zeros((), dtype=torch.long))
+        if config.return_norm:  # only then, so checkpoints of runs without it load as they are
+            self.register_buffer("return_range", torch.zeros(2))
+            """EMA of the 5th and 95th percentiles of imagined returns."""
+
+    def return_scale(self, target: Tensor) -> Tensor:
+        """With ``return_norm``: update the percentile EMA with ``target`` and return ``max(1, P95 - P5)``
+        (DreamerV3); else 1. ``target`` is any shape; returns a detached scalar."""
+        if not self.config.return_norm:
+            return torch.ones((), device=target.device)
+        with torch.no_grad():
+            flat = target.detach().float().reshape(-1)
+            quantiles = torch.quantile(flat, torch.tensor([0.05, 0.95], device=flat.device))
+            decay = self.config.return_norm_decay
+            self.return_range.mul_(decay).add_(quantiles, alpha=1.0 - decay)
+            return (self.return_range[1] - self.return_range[0]).clamp_min(1.0)
 
     def critic_value(self, feat: Tensor) -> Tensor:
         """The critic's mean value ``(...)`` of features ``(..., F)`` (no sampling; gradient kept)."""
@@ -200,18 +233,19 @@ class ActorCritic(nn.Module):
 
         policy = self.actor(feat[:-2].detach())
         entropy = policy.entropy()
+        scale = self.return_scale(target)
         if cfg.actor_grad == "dynamics":
             actor_terms = actor_loss(
-                target=target[1:], weight=weight[:-2], entropy=entropy, entropy_scale=cfg.actor_entropy
+                target=target[1:] / scale, weight=weight[:-2], entropy=entropy, entropy_scale=cfg.actor_entropy
             )
         else:
             actor_terms = actor_loss(
-                target=target[1:],
+                target=target[1:] / scale,
                 weight=weight[:-2],
                 entropy=entropy,
                 entropy_scale=cfg.actor_entropy,
                 log_prob=policy.log_prob(action[1:-1].detach()),
-                baseline=slow_value[:-2].detach(),
+                baseline=slow_value[:-2].detach() / scale,
             )
 
         critic_feat = feat[:-1].detach()
@@ -235,6 +269,7 @@ class ActorCritic(nn.Module):
         metrics.update(
             {
                 "actor/entropy": entropy.detach().mean(),
+                "actor/return_scale": scale,
                 "critic/value": value.detach().mean(),
                 "imag/return": target.detach().mean(),
                 "imag/reward": reward.detach().mean(),

@@ -13,7 +13,15 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-__all__ = ["Bernoulli", "OneHotCategorical", "TanhNormal", "TruncatedNormal", "UnitGaussian", "categorical_kl"]
+__all__ = [
+    "Bernoulli",
+    "Normal",
+    "OneHotCategorical",
+    "TanhNormal",
+    "TruncatedNormal",
+    "UnitGaussian",
+    "categorical_kl",
+]
 
 _LOG_SQRT_2PI = 0.5 * math.log(2.0 * math.pi)
 
@@ -223,6 +231,46 @@ class TanhNormal:
         log_normal = -0.5 * z.square() - _LOG_SQRT_2PI - self.scale.log()
         log_det = 2.0 * (math.log(2.0) - pre - F.softplus(-2.0 * pre))
         return -(log_normal - log_det).sum(-1)
+
+
+class Normal:
+    """Normal distribution, independent over the last (action) dimension: DreamerV3's continuous actor.
+
+    ``loc`` and ``scale`` have shape ``(..., A)``; ``log_prob`` and ``entropy`` sum over ``A`` and return ``(...)``.
+    Samples are not bounded: the agent clips the actions it executes, imagination uses them as drawn.
+    """
+
+    def __init__(self, loc: Tensor, scale: Tensor) -> None:
+        self.loc = loc
+        self.scale = scale
+
+    @property
+    def mode(self) -> Tensor:
+        """``loc``, shape ``(..., A)``."""
+        return self.loc
+
+    @property
+    def mean(self) -> Tensor:
+        """``loc``, shape ``(..., A)``."""
+        return self.loc
+
+    def rsample(self) -> Tensor:
+        """Reparameterised sample ``loc + scale * eps``, shape ``(..., A)``."""
+        return self.loc + self.scale * torch.randn_like(self.loc)
+
+    def sample(self) -> Tensor:
+        """Sample without gradient, shape ``(..., A)``."""
+        with torch.no_grad():
+            return self.rsample()
+
+    def log_prob(self, value: Tensor) -> Tensor:
+        """Log-density summed over actions, shape ``(...)``."""
+        z = (value - self.loc) / self.scale
+        return (-0.5 * z.square() - _LOG_SQRT_2PI - self.scale.log()).sum(-1)
+
+    def entropy(self) -> Tensor:
+        """``log(sqrt(2 pi e) scale)`` summed over actions, shape ``(...)``."""
+        return (_LOG_SQRT_2PI + 0.5 + self.scale.log()).sum(-1)
 
 
 def _std_normal_pdf(x: Tensor) -> Tensor:

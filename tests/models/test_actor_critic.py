@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import pytest
 import torch
@@ -11,7 +12,7 @@ from coworld.config import Config
 from coworld.errors import ConfigError
 from coworld.losses.dreamer import lambda_return
 from coworld.models.actor_critic import ActorCritic, flatten_states
-from coworld.models.distributions import TanhNormal, TruncatedNormal
+from coworld.models.distributions import Normal, TanhNormal, TruncatedNormal
 from coworld.models.networks import frozen_parameters
 from coworld.models.world_model import WorldModel
 
@@ -188,3 +189,74 @@ def test_actor_distributions_and_bad_names(tiny: Config) -> None:
         ActorCritic(config=dataclasses.replace(tiny.actor_critic, actor_dist="gauss"), feat_size=8, action_size=2)
     with pytest.raises(ConfigError, match="actor_grad"):
         ActorCritic(config=dataclasses.replace(tiny.actor_critic, actor_grad="both"), feat_size=8, action_size=2)
+
+
+def test_normal_actor_distribution_known_answers() -> None:
+    loc, scale = torch.tensor([[0.5, -0.2]]), torch.tensor([[0.3, 2.0]])
+    dist = Normal(loc, scale)
+    reference = torch.distributions.Normal(loc, scale)
+    value = torch.tensor([[0.1, 1.7]])
+    torch.testing.assert_close(dist.log_prob(value), reference.log_prob(value).sum(-1))
+    torch.testing.assert_close(dist.entropy(), reference.entropy().sum(-1))
+    torch.manual_seed(0)
+    samples = Normal(loc.expand(20000, 2), scale.expand(20000, 2)).rsample()
+    torch.testing.assert_close(samples.mean(0), loc[0], atol=0.05, rtol=0)
+    torch.testing.assert_close(samples.std(0), scale[0], atol=0.05, rtol=0)
+    assert (samples.abs() > 1.0).any()  # not truncated: the agent clips what it executes
+
+
+class _Fixed(torch.nn.Module):
+    """Stands in for the actor's MLP: returns the raw outputs it was given."""
+
+    def __init__(self, raw: torch.Tensor) -> None:
+        super().__init__()
+        self.raw = raw
+
+    def forward(self, feat: torch.Tensor) -> torch.Tensor:
+        return self.raw
+
+
+def test_normal_actor_keeps_its_spread_between_the_bounds(tiny: Config) -> None:
+    config = dataclasses.replace(tiny.actor_critic, actor_dist="normal", actor_min_std=0.1, actor_max_std=1.0)
+    actor = ActorCritic(config=config, feat_size=8, action_size=2).actor
+    raw_std = torch.tensor([-1e4, -3.0, 0.0, 3.0, 1e4])
+    actor.mlp = _Fixed(torch.stack([torch.zeros(5), torch.full((5,), 3.0), torch.zeros(5), raw_std], dim=-1))
+    dist = actor(torch.zeros(5, 8))
+    torch.testing.assert_close(dist.loc, torch.tensor([0.0, math.tanh(3.0)]).expand(5, 2))
+    expected = 0.9 * torch.sigmoid(raw_std + 2.0) + 0.1  # DreamerV3: starts near the top, 0.89 at raw 0
+    torch.testing.assert_close(dist.scale[:, 1], expected)
+    assert float(dist.scale.min()) >= 0.1 and float(dist.scale.max()) <= 1.0
+    assert dist.scale[2, 1] == pytest.approx(0.8927, abs=1e-4)
+
+
+def test_return_scale_is_one_without_return_norm_and_the_percentile_range_with_it(tiny: Config) -> None:
+    plain = ActorCritic(config=tiny.actor_critic, feat_size=8, action_size=2)
+    target = torch.linspace(0.0, 100.0, 1001)
+    assert float(plain.return_scale(target)) == 1.0 and "return_range" not in plain.state_dict()
+    config = dataclasses.replace(tiny.actor_critic, return_norm=True, return_norm_decay=0.5)
+    ac = ActorCritic(config=config, feat_size=8, action_size=2)
+    first = ac.return_scale(target)  # EMA from zero: 0.5 * (P95 - P5) = 0.5 * 90
+    torch.testing.assert_close(ac.return_range, torch.tensor([2.5, 47.5]))
+    assert float(first) == pytest.approx(45.0)
+    second = ac.return_scale(target)  # 0.75 * 90
+    assert float(second) == pytest.approx(67.5)
+    small = ActorCritic(config=config, feat_size=8, action_size=2)
+    assert float(small.return_scale(torch.linspace(0.0, 0.1, 11))) == 1.0  # never divides by less than 1
+
+
+def test_return_norm_divides_the_actors_returns_by_the_scale(tiny: Config) -> None:
+    torch.manual_seed(0)
+    config = dataclasses.replace(tiny.actor_critic, return_norm=True, return_norm_decay=0.0, actor_entropy=0.0)
+    ac = ActorCritic(config=config, feat_size=8, action_size=2)
+    horizon, n = 5, 3
+    traj = {
+        "feat": torch.randn(horizon + 1, n, 8),
+        "action": torch.zeros(horizon + 1, n, 2),
+        "reward": 10.0 * torch.arange(horizon + 1.0)[:, None].expand(horizon + 1, n),
+        "continuation": torch.full((horizon + 1, n), 0.9),
+        "weight": torch.ones(horizon + 1, n),
+    }
+    terms, metrics = ac.losses(None, traj)
+    scale = float(metrics["actor/return_scale"])
+    assert scale > 1.0
+    torch.testing.assert_close(terms["actor_terms"], -terms["target"][1:] / scale)
