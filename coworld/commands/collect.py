@@ -142,7 +142,7 @@ COLLECTORS: dict[str, Callable[[dict[str, Any]], None]] = {
 @click.option("--preset", default="paper", show_default=True, help="dreamerv2 only: tiny (CPU) or paper.")
 @click.option(
     "--stop-return",
-    type=Number(),
+    type=Number(-1e9, 1e9),
     default=None,
     help="dreamerv2 only: stop training once evaluation reaches this [default: 1/3 of the task's reference; none"
     " for --quality expert].",

@@ -93,30 +93,34 @@ class CheckedPath(click.Path):
     def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> Any:
         if isinstance(value, str) and not value.strip():
             self.fail("an empty path; give a file or folder name.", param, ctx)
-        path = super().convert(value, param, ctx)
         if self.output:
-            problem = output_problem(path, self.output)
-            if problem:
-                self.fail(problem, param, ctx)
-        return path
+            check_output(Path(os.fsdecode(value)), self.output, _option_name(param))
+        return super().convert(value, param, ctx)
 
 
-def output_problem(path: Path, kind: str) -> str:
-    """Why ``path`` (a 'file' or a 'folder' a command would write) cannot be made, or ''."""
-    from coworld.errors import StorageError
+def _option_name(param: click.Parameter | None) -> str:
+    if isinstance(param, click.Option):
+        return max(param.opts, key=len)
+    return param.human_readable_name if param is not None else "path"
+
+
+def check_output(path: Path, kind: str, option: str) -> None:
+    """Raise one CoworldError line unless ``path`` (a 'file' or a 'folder' the command writes, given as ``option``)
+    can be made: its nearest existing folder is a folder, not a file, and this process may write in it."""
+    from coworld.errors import ConfigError
     from coworld.storage import check_writable
 
+    if kind == "file" and path.is_dir():
+        raise ConfigError(f"{path} is a folder, not a file; choose another {option}")
+    if kind == "folder" and path.exists() and not path.is_dir():
+        raise ConfigError(f"{path} is a file, not a folder; choose another {option}")
     folder = path if kind == "folder" else path.parent
     existing = folder.absolute()
     while not existing.exists() and existing != existing.parent:
         existing = existing.parent
     if not existing.is_dir():
-        return f"{existing} is a file, not a folder: {path} cannot be made there; choose another path."
-    try:
-        check_writable(folder, "path")
-    except StorageError as err:
-        return f"cannot write to {existing} ({err.reason}); choose another path or make it writable."
-    return ""
+        raise ConfigError(f"{option} {path}: {existing} is a file, not a folder; choose another {option}")
+    check_writable(folder, option)
 
 
 def input_path(**kwargs: Any) -> CheckedPath:
