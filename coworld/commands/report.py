@@ -18,6 +18,8 @@ def report(root, out) -> None:
     from coworld.report import write_report
 
     made = write_report(root, out)
+    for problem in made.skipped:
+        click.echo(f"warning: skipped {problem}", err=True)
     click.echo(f"{len(made.results)} runs, {made.finished} finished")
     for path in made.files:
         click.echo(f"wrote {path}")
