@@ -175,6 +175,7 @@ def import_dataset(
 @click.option("--author", help="Minari metadata: the dataset's author.")
 @click.option("--author-email", help="Minari metadata: the author's e-mail.")
 @click.option("--code-permalink", help="Minari metadata: a link to the code that made the data.")
+@click.option("--incomplete", is_flag=True, help="Export a dataset whose collection did not finish (with a warning).")
 def export(
     path: Path,
     target: str,
@@ -184,6 +185,7 @@ def export(
     author: str | None,
     author_email: str | None,
     code_permalink: str | None,
+    incomplete: bool,
 ) -> None:
     """Export a dataset to Minari or to dreamer-style npz episodes.
 
@@ -197,10 +199,11 @@ def export(
     from coworld.errors import ConfigError
 
     progress = sys.stderr.isatty()
+    checks = {"incomplete": incomplete, "warn": lambda message: click.echo(f"warning: {message}", err=True)}
     if target == "npz-episodes":
         if out is None or name is not None:
             raise ConfigError("--to npz-episodes writes the folder --out FOLDER (and takes no --name)")
-        export_npz_episodes(path, out, force=force, progress=progress)
+        export_npz_episodes(path, out, force=force, progress=progress, **checks)
         click.echo(f"wrote {out}: {len(list(out.glob('*.npz'))):,} episodes as .npz files")
         return
     if out is not None:
@@ -213,5 +216,6 @@ def export(
         author=author,
         author_email=author_email,
         code_permalink=code_permalink,
+        **checks,
     )
     click.echo(f"wrote Minari dataset {dataset_id}: open it with minari.load_dataset({dataset_id!r})")

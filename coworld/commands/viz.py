@@ -8,7 +8,15 @@ from typing import Any
 
 import click
 
-from coworld.commands.options import SEED, Number, count_type, input_path, output_file, threads_option
+from coworld.commands.options import (
+    SEED,
+    Number,
+    count_type,
+    distinct_outputs,
+    input_path,
+    output_file,
+    threads_option,
+)
 
 DEVICES = click.Choice(["auto", "cpu", "cuda"])
 MAX_SHOWN = 64
@@ -102,6 +110,7 @@ def latents(ckpt, out, frames, length, dataset, source_dataset, source, perplexi
     from coworld.viz.runs import load_run_models
 
     output_kind(out, (".png",))
+    distinct_outputs({"--out": out, "--json": json_out})
     require_extra("sklearn", "matplotlib")
     run = load_run_models(ckpt, device=device)
     report, where = latents_of_run(
@@ -146,6 +155,7 @@ def dataset_command(path, out, episodes, frames, hist, fps) -> None:
     kind = output_kind(out)
     hist = hist if hist is not None else out.with_name(f"{out.stem}-returns.png")
     output_kind(hist, (".png",))
+    distinct_outputs({"--out": out, "--hist": hist})
     require_extra("matplotlib")
     with open_dataset(path) as data:
         _save(
