@@ -67,12 +67,18 @@ def test_cuda_on_a_machine_without_it_is_refused_before_any_dataset(tmp_path):
     assert not (tmp_path / "s").exists()
 
 
-@pytest.mark.parametrize("folder", ["", "{file}/sweep"])
-def test_a_sweep_folder_that_cannot_be_made_is_a_usage_error(tmp_path, folder):
+@pytest.mark.parametrize(
+    "folder, said",
+    [
+        ("", "Invalid value for '--dir': an empty path"),
+        ("{file}/sweep", "is a file, not a folder; choose another --dir"),
+    ],
+)
+def test_a_sweep_folder_that_cannot_be_made_is_refused(tmp_path, folder, said):
     (tmp_path / "file").write_text("a file")
     result = CliRunner().invoke(main, ["sweep", "--table", "toy", "--dir", folder.format(file=tmp_path / "file")])
-    assert result.exit_code == 2 and "Invalid value for '--dir'" in result.output and "Traceback" not in result.output
-    assert not (tmp_path / "sweep").exists()
+    assert result.exit_code == 2 and said in result.output and "Traceback" not in result.output
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["file"]
 
 
 def test_jobs_beyond_the_cores_are_capped_with_a_note(tmp_path):
