@@ -12,6 +12,7 @@ saved as JSON next to every run and inside every dataset.
 from __future__ import annotations
 
 import dataclasses
+import decimal
 import json
 import math
 import re
@@ -496,16 +497,37 @@ def _cast(value: Any, hint: Any, dotted: str) -> Any:
                 return False
             raise ValueError(value)
         if hint is int:
-            if isinstance(value, float) and not value.is_integer():
-                raise ValueError(value)
-            return int(float(value)) if isinstance(value, str) and "e" in value.lower() else int(value)
+            return _whole_number(value, dotted)
         if hint is float:
+            if isinstance(value, bool):
+                raise ValueError(value)
             return float(value)
         if hint is str:
             return str(value)
     except (TypeError, ValueError):
-        raise ConfigError(f"config key {dotted!r} takes a {hint.__name__}, got {value!r}") from None
+        kind = {int: "a whole number", float: "a number", bool: "true or false"}.get(hint, hint.__name__)
+        raise ConfigError(f"config key {dotted!r} takes {kind}, got {value!r}") from None
     raise ConfigError(f"config key {dotted!r} has unsupported type {hint}")
+
+
+INT_LIMIT = 2**63 - 1
+"""The largest magnitude of an integer config value: what a 64-bit counter (NumPy, torch) holds."""
+
+
+def _whole_number(value: Any, dotted: str) -> int:
+    """``value`` as an exact integer (``"5000"``, ``"5e3"``, ``5000.0``), within :data:`INT_LIMIT`; a fraction, a
+    bool or a number beyond the limit raises ConfigError (``int(float("1e30"))`` would be silently inexact)."""
+    if isinstance(value, bool):
+        raise ValueError(value)
+    try:
+        exact = decimal.Decimal(str(value).strip())
+    except decimal.InvalidOperation:
+        raise ValueError(value) from None
+    if not exact.is_finite() or exact != exact.to_integral_value():
+        raise ValueError(value)
+    if abs(exact) > INT_LIMIT:
+        raise ConfigError(f"config key {dotted!r} takes a whole number up to {INT_LIMIT:,}, got {value!r}")
+    return int(exact)
 
 
 def config_keys(node: Any, prefix: str = "") -> list[str]:

@@ -69,7 +69,8 @@ def _mib(n: int) -> str:
 def os_error_text(err: OSError) -> str:
     """One line for an OSError of a refused write: what could not be written and why."""
     where = f" {err.filename}" if err.filename else ""
-    return f"cannot write{where}: {failure_reason(err)}"
+    fix = "free space" if err.errno in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG) else "make it writable"
+    return f"cannot write{where}: {failure_reason(err)}; {fix} or choose another location, then rerun"
 
 
 def check_writable(folder: str | os.PathLike[str], option: str) -> None:
@@ -101,6 +102,9 @@ def write_text_atomically(path: str | os.PathLike[str], text: str) -> None:
         tmp.write_text(text)
         fsync_path(tmp)
         os.replace(tmp, path)
+    except OSError as err:
+        tmp.unlink(missing_ok=True)
+        raise OSError(err.errno, err.strerror, str(path)) from None  # the user's path, not the temporary one
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise

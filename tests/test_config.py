@@ -29,9 +29,12 @@ def test_overrides_cast_to_the_default_type():
     [
         ("world_model.nope=1", "unknown config key 'world_model.nope'"),
         ("nope=1", "unknown config key 'nope'"),
-        ("train.steps=ten", "takes a int"),
-        ("train.steps=1.5", "takes a int"),
-        ("coworld.align=maybe", "takes a bool"),
+        ("train.steps=ten", "takes a whole number"),
+        ("train.steps=1.5", "takes a whole number"),
+        ("train.steps=1e30", "a whole number up to 9,223,372,036,854,775,807"),
+        ("world_model.deter=1e400", "a whole number up to"),
+        ("train.steps=true", "takes a whole number"),
+        ("coworld.align=maybe", "takes true or false"),
         ("world_model=1", "is a section"),
         ("seed.x=1", "unknown config key"),
         ("novalue", "section.key=value"),
@@ -41,6 +44,11 @@ def test_bad_overrides_raise_one_line(item, match):
     with pytest.raises(ConfigError, match=match) as info:
         make_config("tiny", [item])
     assert "\n" not in str(info.value)
+
+
+def test_whole_numbers_written_as_floats_are_exact():
+    config = make_config("tiny", ["train.steps=1e18", "train.batch_size=16.0"])
+    assert config.train.steps == 10**18 and config.train.batch_size == 16  # not int(float("1e18")) rounding
 
 
 def test_unknown_preset():

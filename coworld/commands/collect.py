@@ -14,7 +14,7 @@ from typing import Any
 import click
 
 from coworld import interrupt
-from coworld.commands.options import threads_option
+from coworld.commands.options import SEED, Number, count_type, output_file, threads_option
 from coworld.data import CODECS
 from coworld.errors import CoworldError, StorageError
 from coworld.text import count
@@ -142,20 +142,18 @@ COLLECTORS: dict[str, Callable[[dict[str, Any]], None]] = {
 @click.option("--preset", default="paper", show_default=True, help="dreamerv2 only: tiny (CPU) or paper.")
 @click.option(
     "--stop-return",
-    type=float,
+    type=Number(-1e9, 1e9),
     default=None,
     help="dreamerv2 only: stop training once evaluation reaches this [default: 1/3 of the task's reference; none"
     " for --quality expert].",
 )
 @click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE", help="dreamerv2 only: config override.")
 @click.option("--device", type=click.Choice(["auto", "cpu", "cuda"]), default="auto", show_default=True)
-@click.option("--episodes", type=click.IntRange(min=1), help="Collect exactly this many episodes.")
-@click.option("--max-steps", type=click.IntRange(min=1), help="Collect exactly this many steps (rows).")
-@click.option("--out", type=click.Path(path_type=Path), help="Dataset file [default: datasets/<task>-<quality>.h5].")
-@click.option(
-    "--seed", type=click.IntRange(0, 2**32 - 1), default=0, show_default=True, help="Seeds the environments and policy."
-)
-@click.option("--workers", type=click.IntRange(min=1), default=1, show_default=True, help="Parallel environments.")
+@click.option("--episodes", type=count_type(), help="Collect exactly this many episodes.")
+@click.option("--max-steps", type=count_type(), help="Collect exactly this many steps (rows).")
+@click.option("--out", type=output_file(), help="Dataset file [default: datasets/<task>-<quality>.h5].")
+@click.option("--seed", type=SEED, default=0, show_default=True, help="Seeds the environments and policy.")
+@click.option("--workers", type=count_type(), default=1, show_default=True, help="Parallel environments.")
 @click.option("--resume", is_flag=True, help="Continue a partial dataset at --out up to the requested amount.")
 @click.option("--force", is_flag=True, help="Overwrite an existing dataset at --out.")
 @click.option("--compression", type=click.Choice(CODECS), default="gzip", show_default=True, help="Frame codec.")

@@ -10,6 +10,7 @@ from typing import Any
 import click
 
 from coworld import interrupt
+from coworld.commands.options import count_type, input_path, output_file, output_folder
 from coworld.data import CODECS, QUALITIES, merge_datasets, open_dataset, verify_dataset
 from coworld.text import count
 
@@ -20,7 +21,7 @@ def dataset() -> None:
 
 
 @dataset.command()
-@click.argument("path", type=click.Path(path_type=Path))
+@click.argument("path", type=input_path())
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as one JSON object.")
 def info(path: Path, as_json: bool) -> None:
     """Episodes, steps, returns, normalized score, size on disk and metadata of the dataset at PATH."""
@@ -71,7 +72,7 @@ def _mb(n: int) -> str:
 
 
 @dataset.command()
-@click.argument("path", type=click.Path(path_type=Path))
+@click.argument("path", type=input_path())
 def verify(path: Path) -> None:
     """Check schema, shapes, dtypes, episode boundaries, finite values, checksums and the complete flag.
 
@@ -88,8 +89,8 @@ def verify(path: Path) -> None:
 
 
 @dataset.command()
-@click.argument("inputs", nargs=-1, required=True, type=click.Path(path_type=Path))
-@click.option("--out", required=True, type=click.Path(path_type=Path), help="The merged dataset to write.")
+@click.argument("inputs", nargs=-1, required=True, type=input_path())
+@click.option("--out", required=True, type=output_file(), help="The merged dataset to write.")
 @click.option(
     "--quality",
     type=click.Choice(QUALITIES),
@@ -117,13 +118,18 @@ def merge(inputs: tuple[Path, ...], out: Path, quality: str | None, force: bool,
 
 @dataset.command("import")
 @click.argument("source_format", metavar="FORMAT", type=click.Choice(["vd4rl"]))
-@click.argument("path", type=click.Path(path_type=Path))
+@click.argument("path", type=input_path())
 @click.option("--task", required=True, help="Our task the data belongs to, e.g. walker_walk (see `coworld tasks`).")
-@click.option("--out", type=click.Path(dir_okay=False, path_type=Path), help="Default datasets/<task>-<quality>.h5.")
+@click.option("--out", type=output_file(), help="Default datasets/<task>-<quality>.h5.")
 @click.option(
     "--quality", type=click.Choice(QUALITIES), help="Default: read from V-D4RL's folder name (.../medium_replay/...)."
 )
-@click.option("--resize", type=int, default=None, help="Resize frames to this size (64; area filter), e.g. 84px data.")
+@click.option(
+    "--resize",
+    type=count_type(1, 4096),
+    default=None,
+    help="Resize frames to this size (64; area filter), e.g. 84px data.",
+)
 @click.option("--resume", is_flag=True, help="Continue an interrupted import of the same folder into --out.")
 @click.option("--force", is_flag=True, help="Overwrite --out if it exists.")
 @click.option("--compression", type=click.Choice(CODECS), default="gzip", show_default=True, help="Frame codec.")
@@ -161,14 +167,15 @@ def import_dataset(
 
 
 @dataset.command("export")
-@click.argument("path", type=click.Path(path_type=Path))
+@click.argument("path", type=input_path())
 @click.option("--to", "target", required=True, type=click.Choice(["minari", "npz-episodes"]), help="Output format.")
 @click.option("--name", help="Minari dataset id; default coworld/<task>/<quality>-v0.")
-@click.option("--out", type=click.Path(file_okay=False, path_type=Path), help="npz-episodes: the folder to write.")
+@click.option("--out", type=output_folder(), help="npz-episodes: the folder to write.")
 @click.option("--force", is_flag=True, help="Replace an existing Minari dataset or folder.")
 @click.option("--author", help="Minari metadata: the dataset's author.")
 @click.option("--author-email", help="Minari metadata: the author's e-mail.")
 @click.option("--code-permalink", help="Minari metadata: a link to the code that made the data.")
+@click.option("--incomplete", is_flag=True, help="Export a dataset whose collection did not finish (with a warning).")
 def export(
     path: Path,
     target: str,
@@ -178,6 +185,7 @@ def export(
     author: str | None,
     author_email: str | None,
     code_permalink: str | None,
+    incomplete: bool,
 ) -> None:
     """Export a dataset to Minari or to dreamer-style npz episodes.
 
@@ -191,10 +199,11 @@ def export(
     from coworld.errors import ConfigError
 
     progress = sys.stderr.isatty()
+    checks = {"incomplete": incomplete, "warn": lambda message: click.echo(f"warning: {message}", err=True)}
     if target == "npz-episodes":
         if out is None or name is not None:
             raise ConfigError("--to npz-episodes writes the folder --out FOLDER (and takes no --name)")
-        export_npz_episodes(path, out, force=force, progress=progress)
+        export_npz_episodes(path, out, force=force, progress=progress, **checks)
         click.echo(f"wrote {out}: {len(list(out.glob('*.npz'))):,} episodes as .npz files")
         return
     if out is not None:
@@ -207,5 +216,6 @@ def export(
         author=author,
         author_email=author_email,
         code_permalink=code_permalink,
+        **checks,
     )
     click.echo(f"wrote Minari dataset {dataset_id}: open it with minari.load_dataset({dataset_id!r})")

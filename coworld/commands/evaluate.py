@@ -8,23 +8,17 @@ from pathlib import Path
 import click
 
 from coworld import interrupt
-from coworld.commands.options import threads_option
+from coworld.commands.options import SEED, count_type, input_path, output_file, threads_option
 
 
 @click.command("eval")
-@click.option("--ckpt", "ckpt", required=True, type=click.Path(), help="Run folder or its checkpoint.pt.")
-@click.option("--episodes", type=click.IntRange(min=1), default=10, show_default=True)
-@click.option(
-    "--workers", type=click.IntRange(min=1), default=1, show_default=True, help="Environments stepped in parallel."
-)
-@click.option(
-    "--seed", type=click.IntRange(0, 2**32 - 1), default=0, show_default=True, help="Episode e is seeded by (seed, e)."
-)
-@click.option("--video", type=click.Path(dir_okay=False), default=None, help="Write the first episodes as MP4/GIF.")
-@click.option("--video-episodes", type=click.IntRange(min=0), default=1, show_default=True)
-@click.option(
-    "--out", type=click.Path(dir_okay=False), default=None, help="Results JSON; default <run folder>/eval.json."
-)
+@click.option("--ckpt", "ckpt", required=True, type=input_path(), help="Run folder or its checkpoint.pt.")
+@click.option("--episodes", type=count_type(), default=10, show_default=True)
+@click.option("--workers", type=count_type(), default=1, show_default=True, help="Environments stepped in parallel.")
+@click.option("--seed", type=SEED, default=0, show_default=True, help="Episode e is seeded by (seed, e).")
+@click.option("--video", type=output_file(), default=None, help="Write the first episodes as MP4/GIF.")
+@click.option("--video-episodes", type=count_type(0), default=1, show_default=True)
+@click.option("--out", type=output_file(), default=None, help="Results JSON; default <run folder>/eval.json.")
 @click.option("--task", default=None, help="Evaluate in another task than the run's target (same action size).")
 @threads_option
 @click.option("--device", type=click.Choice(["auto", "cpu", "cuda"]), default="auto", show_default=True)

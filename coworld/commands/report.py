@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import click
 
+from coworld.commands.options import input_path, output_folder
+
 
 @click.command()
-@click.argument("root", type=click.Path(file_okay=False))
-@click.option("--out", type=click.Path(file_okay=False), default=None, help="Where to write [default: ROOT].")
+@click.argument("root", type=input_path(file_okay=False))
+@click.option("--out", type=output_folder(), default=None, help="Where to write [default: ROOT].")
 def report(root, out) -> None:
     """Write report.md, results.csv and PNG figures for every run folder under ROOT.
 
@@ -16,6 +18,8 @@ def report(root, out) -> None:
     from coworld.report import write_report
 
     made = write_report(root, out)
+    for problem in made.skipped:
+        click.echo(f"warning: skipped {problem}", err=True)
     click.echo(f"{len(made.results)} runs, {made.finished} finished")
     for path in made.files:
         click.echo(f"wrote {path}")

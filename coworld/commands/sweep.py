@@ -6,41 +6,41 @@ import sys
 
 import click
 
-from coworld.sweep.grid import TABLES
+from coworld import interrupt
+from coworld.commands.options import MAX_THREADS, Number, capped_jobs, count_type, input_path, output_folder
+from coworld.sweep.grid import MAX_SEEDS, TABLES
 
 
 @click.command()
-@click.option(
-    "--dir", "root", required=True, type=click.Path(file_okay=False), help="Sweep folder (resumed if it exists)."
-)
+@click.option("--dir", "root", required=True, type=output_folder(), help="Sweep folder (resumed if it exists).")
 @click.option(
     "--table", type=click.Choice(sorted(set(TABLES) - {"ablation"})), help="A named grid: the paper's tables."
 )
 @click.option(
     "--ablation", is_flag=True, help="Figure 4(a): CoWorld with each term off in turn (alone, or on a --table)."
 )
-@click.option("--grid", "grid_file", type=click.Path(dir_okay=False), help="A TOML grid file (see the README).")
+@click.option("--grid", "grid_file", type=input_path(dir_okay=False), help="A TOML grid file (see the README).")
 @click.option("--pairs", help="SOURCE:TARGET[,SOURCE:TARGET...], e.g. walker_walk:walker_uphill.")
 @click.option("--algos", help="Comma-separated algorithms: coworld,dreamerv2,curl,curl-cql.")
-@click.option("--seeds", type=int, help="Seeds 0..N-1 of every run.")
+@click.option("--seeds", type=count_type(1, MAX_SEEDS), help="Seeds 0..N-1 of every run.")
 @click.option("--preset", help="Config preset of every run: tiny or paper.")
 @click.option(
     "--set", "overrides", multiple=True, metavar="KEY=VALUE", help="Config override of every run (repeatable)."
 )
-@click.option("--eval-episodes", type=click.IntRange(min=1), help="Episodes of each run's final evaluation.")
-@click.option("--data-dir", type=click.Path(file_okay=False), help="Where the datasets are [default: DIR/datasets].")
-@click.option("--jobs", type=click.IntRange(min=1), default=1, show_default=True, help="Local runs at once.")
-@click.option("--threads", type=click.IntRange(min=1), default=1, show_default=True, help="Torch threads per run.")
+@click.option("--eval-episodes", type=count_type(), help="Episodes of each run's final evaluation.")
+@click.option("--data-dir", type=output_folder(), help="Where the datasets are [default: DIR/datasets].")
+@click.option(
+    "--jobs", type=count_type(), default=1, show_default=True, help="Local runs at once (capped at the cores)."
+)
+@click.option("--threads", type=count_type(1, MAX_THREADS), default=1, show_default=True, help="Torch threads per run.")
 @click.option("--device", type=click.Choice(["auto", "cpu", "cuda"]), default=None, help="Device of every run.")
 @click.option("--ray", "ray_address", metavar="ADDRESS", help="Run on Ray: a cluster's address, 'auto', or 'local'.")
-@click.option("--gpus-per-run", type=click.FloatRange(min=0), default=0.0, help="GPUs per Ray task (0.5: two share).")
+@click.option("--gpus-per-run", type=Number(0, 64), default=0.0, help="GPUs per Ray task (0.5: two share).")
 @click.option(
     "--dry-run", is_flag=True, help="List the datasets to collect and the runs with their state; run nothing."
 )
 @click.option("--progress/--no-progress", default=None, help="Progress view [default: bar on a terminal, else lines].")
-@click.option(
-    "--interval", type=click.FloatRange(min=1), default=60.0, show_default=True, help="Seconds between lines."
-)
+@click.option("--interval", type=Number(1, 86_400), default=60.0, show_default=True, help="Seconds between lines.")
 def sweep(
     root,
     table,
@@ -74,7 +74,7 @@ def sweep(
     finished, 1 when some failed (their logs are in DIR/logs), 2 on bad options.
     """
     from coworld.sweep import grid as grids
-    from coworld.sweep.runner import Execution, preview, run_sweep
+    from coworld.sweep.runner import Execution, check_execution, preview, run_sweep
 
     options = grids.read_grid_file(grid_file) if grid_file else {}
     if table is not None:
@@ -93,6 +93,10 @@ def sweep(
         options["eval_episodes"] = eval_episodes
     options["overrides"] = (*options.get("overrides", ()), *overrides)
     spec = grids.build_spec(**options)
+    if ray_address is None:
+        jobs, note = capped_jobs(jobs, threads)
+        if note:
+            click.echo(f"note: {note}", err=True)
     execution = Execution(
         jobs=jobs,
         threads=threads,
@@ -103,6 +107,7 @@ def sweep(
         interval=interval,
     )
     if dry_run:
+        check_execution(execution)
         click.echo(preview(spec, root, execution, data_dir=data_dir))
         return
 
@@ -116,11 +121,8 @@ def sweep(
             err=True,
         )
 
-    try:
+    with interrupt.explain(lambda: f"finished runs are kept; rerun the same command to resume {root}"):
         outcome = run_sweep(spec, root, execution, data_dir=data_dir, on_plan=announce)
-    except KeyboardInterrupt:
-        click.echo(f"interrupted; rerun the same command to resume {root}", err=True)
-        sys.exit(130)
     done = outcome.runs - sum(1 for name, _ in outcome.failed if not name.startswith("collect-"))
     click.echo(f"sweep {root}: {done}/{outcome.runs} runs finished")
     for name, log in outcome.failed:

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import click
 
+from coworld.commands.options import SEED, count_type, output_folder
 from coworld.envs.registry import PAIRS, TASKS, task_spec
 from coworld.errors import ConfigError
 
@@ -54,10 +55,16 @@ def _number(value: float | None) -> str:
 
 @click.command("render")
 @click.option("--task", "task_name", required=True, help="Task name (see `coworld tasks`).")
-@click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False, path_type=Path), help="Folder.")
-@click.option("--frames", default=50, show_default=True, type=int, help="Frames to save (the first is the reset).")
-@click.option("--seed", default=0, show_default=True, type=int, help="Seed of the env and the random actions.")
-@click.option("--image-size", default=64, show_default=True, type=int, help="Frame side in pixels.")
+@click.option("--out", "out_dir", required=True, type=output_folder(), help="Folder.")
+@click.option(
+    "--frames",
+    default=50,
+    show_default=True,
+    type=count_type(1, 100_000),
+    help="Frames to save (the first is the reset).",
+)
+@click.option("--seed", default=0, show_default=True, type=SEED, help="Seed of the env and the random actions.")
+@click.option("--image-size", default=64, show_default=True, type=count_type(8, 1024), help="Frame side in pixels.")
 def render(task_name: str, out_dir: Path, frames: int, seed: int, image_size: int) -> None:
     """Save frames of one random-policy episode as PNG files <task>_<step>.png."""
     import imageio.v3 as iio

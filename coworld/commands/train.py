@@ -7,7 +7,7 @@ from pathlib import Path
 import click
 
 from coworld import interrupt
-from coworld.commands.options import threads_option
+from coworld.commands.options import SEED, input_path, output_folder, threads_option
 from coworld.errors import StorageError
 from coworld.training.train import ALGOS, MODEL_FREE
 
@@ -19,7 +19,7 @@ RESUME = "rerun the same command to resume"
 @click.option("--source", default=None, help="Online source task (CoWorld only), e.g. walker_walk.")
 @click.option(
     "--dataset",
-    type=click.Path(dir_okay=False),
+    type=input_path(dir_okay=False),
     default=None,
     help="Target dataset; default datasets/<target>-medium_replay.h5.",
 )
@@ -27,11 +27,11 @@ RESUME = "rerun the same command to resume"
 @click.option("--preset", default="paper", show_default=True, help="tiny (CPU minutes) or paper (Table 3, GPU).")
 @click.option(
     "--logdir",
-    type=click.Path(file_okay=False),
+    type=output_folder(),
     default=None,
     help="Run folder; default runs/<algo>-<source>-<target>-s<seed>. An existing one is resumed.",
 )
-@click.option("--seed", type=click.IntRange(0, 2**32 - 1), default=None, help="Seed (default: config seed, 0).")
+@click.option("--seed", type=SEED, default=None, help="Seed (default: config seed, 0).")
 @click.option("--device", type=click.Choice(["auto", "cpu", "cuda"]), default=None, help="Default auto.")
 @click.option(
     "--set",

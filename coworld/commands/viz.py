@@ -8,9 +8,27 @@ from typing import Any
 
 import click
 
-from coworld.commands.options import threads_option
+from coworld.commands.options import (
+    SEED,
+    Number,
+    count_type,
+    distinct_outputs,
+    input_path,
+    output_file,
+    threads_option,
+)
 
 DEVICES = click.Choice(["auto", "cpu", "cuda"])
+MAX_SHOWN = 64
+"""The most episodes one picture or video shows."""
+MAX_STEPS = 10_000
+"""The longest sequence (--length, --context): longer than any task's episode."""
+MAX_SCALE = 8
+"""The largest pixel enlargement: a default prediction strip at scale 8 is already 25,600 x 5,120 pixels."""
+MAX_FPS = 120
+MAX_LATENT_FRAMES = 5_000
+"""The most frames per domain of a t-SNE picture (3 groups of them: t-SNE time grows faster than their number)."""
+MAX_PERPLEXITY = 1_000.0
 
 
 @click.group()
@@ -19,17 +37,17 @@ def viz() -> None:
 
 
 @viz.command()
-@click.option("--ckpt", required=True, type=click.Path(path_type=Path), help="Run folder (coworld or dreamerv2).")
-@click.option("--out", required=True, type=click.Path(dir_okay=False, path_type=Path), help=".mp4, .gif or .png")
-@click.option("--episodes", type=click.IntRange(min=1), default=2, show_default=True, help="Episodes shown.")
-@click.option("--context", type=click.IntRange(min=1), default=5, show_default=True, help="Observed frames.")
-@click.option("--length", type=click.IntRange(min=2), default=50, show_default=True, help="Steps per sequence.")
-@click.option("--start", type=click.IntRange(min=0), default=0, show_default=True, help="First step shown.")
-@click.option("--dataset", type=click.Path(path_type=Path), default=None, help="Target episodes from here.")
+@click.option("--ckpt", required=True, type=input_path(), help="Run folder (coworld or dreamerv2).")
+@click.option("--out", required=True, type=output_file(), help=".mp4, .gif or .png")
+@click.option("--episodes", type=count_type(1, MAX_SHOWN), default=2, show_default=True, help="Episodes shown.")
+@click.option("--context", type=count_type(1, MAX_STEPS), default=5, show_default=True, help="Observed frames.")
+@click.option("--length", type=count_type(2, MAX_STEPS), default=50, show_default=True, help="Steps per sequence.")
+@click.option("--start", type=count_type(0, MAX_STEPS), default=0, show_default=True, help="First step shown.")
+@click.option("--dataset", type=input_path(), default=None, help="Target episodes from here.")
 @click.option("--online", is_flag=True, help="Fresh episodes of the run's target policy instead of dataset ones.")
-@click.option("--seed", type=int, default=0, show_default=True, help="Seed of the --online episodes.")
-@click.option("--scale", type=click.IntRange(min=1), default=None, help="Pixel enlargement [png 1, video 2].")
-@click.option("--fps", type=click.IntRange(min=1), default=5, show_default=True)
+@click.option("--seed", type=SEED, default=0, show_default=True, help="Seed of the --online episodes.")
+@click.option("--scale", type=count_type(1, MAX_SCALE), default=None, help="Pixel enlargement [png 1, video 2].")
+@click.option("--fps", type=count_type(1, MAX_FPS), default=5, show_default=True)
 @threads_option
 @click.option("--device", type=DEVICES, default="auto", show_default=True)
 def predictions(ckpt, out, episodes, context, length, start, dataset, online, seed, scale, fps, device) -> None:
@@ -59,21 +77,23 @@ def predictions(ckpt, out, episodes, context, length, start, dataset, online, se
 
 
 @viz.command()
-@click.option("--ckpt", required=True, type=click.Path(path_type=Path), help="Run folder (coworld or dreamerv2).")
-@click.option("--out", required=True, type=click.Path(dir_okay=False, path_type=Path), help="The picture (.png).")
-@click.option("--frames", type=click.IntRange(min=10), default=500, show_default=True, help="Frames per domain.")
-@click.option("--length", type=click.IntRange(min=1), default=25, show_default=True, help="Steps per sequence.")
-@click.option("--dataset", type=click.Path(path_type=Path), default=None, help="Target frames from here.")
+@click.option("--ckpt", required=True, type=input_path(), help="Run folder (coworld or dreamerv2).")
+@click.option("--out", required=True, type=output_file(), help="The picture (.png).")
+@click.option(
+    "--frames", type=count_type(10, MAX_LATENT_FRAMES), default=500, show_default=True, help="Frames per domain."
+)
+@click.option("--length", type=count_type(1, MAX_STEPS), default=25, show_default=True, help="Steps per sequence.")
+@click.option("--dataset", type=input_path(), default=None, help="Target frames from here.")
 @click.option(
     "--source-dataset",
-    type=click.Path(path_type=Path),
+    type=input_path(),
     default=None,
     help="Source frames from here [default: a coworld run's source_replay.h5].",
 )
 @click.option("--source", default=None, help="Source task for random-action episodes when there is no dataset.")
-@click.option("--perplexity", type=click.FloatRange(min=1), default=30.0, show_default=True)
-@click.option("--seed", type=int, default=0, show_default=True)
-@click.option("--json", "json_out", type=click.Path(dir_okay=False, path_type=Path), help="Write the numbers here.")
+@click.option("--perplexity", type=Number(1, MAX_PERPLEXITY), default=30.0, show_default=True)
+@click.option("--seed", type=SEED, default=0, show_default=True)
+@click.option("--json", "json_out", type=output_file(), help="Write the numbers here.")
 @threads_option
 @click.option("--device", type=DEVICES, default="auto", show_default=True)
 def latents(ckpt, out, frames, length, dataset, source_dataset, source, perplexity, seed, json_out, device) -> None:
@@ -90,6 +110,7 @@ def latents(ckpt, out, frames, length, dataset, source_dataset, source, perplexi
     from coworld.viz.runs import load_run_models
 
     output_kind(out, (".png",))
+    distinct_outputs({"--out": out, "--json": json_out})
     require_extra("sklearn", "matplotlib")
     run = load_run_models(ckpt, device=device)
     report, where = latents_of_run(
@@ -113,17 +134,17 @@ def latents(ckpt, out, frames, length, dataset, source_dataset, source, perplexi
 
 
 @viz.command("dataset")
-@click.argument("path", type=click.Path(path_type=Path))
-@click.option("--out", required=True, type=click.Path(dir_okay=False, path_type=Path), help=".png, .mp4 or .gif")
-@click.option("--episodes", type=click.IntRange(min=1), default=None, help="Episodes shown [png 8, video 3].")
-@click.option("--frames", type=click.IntRange(min=1), default=8, show_default=True, help="Frames per row (png).")
+@click.argument("path", type=input_path())
+@click.option("--out", required=True, type=output_file(), help=".png, .mp4 or .gif")
+@click.option("--episodes", type=count_type(1, MAX_SHOWN), default=None, help="Episodes shown [png 8, video 3].")
+@click.option("--frames", type=count_type(1, MAX_SHOWN), default=8, show_default=True, help="Frames per row (png).")
 @click.option(
     "--hist",
-    type=click.Path(dir_okay=False, path_type=Path),
+    type=output_file(),
     default=None,
     help="Histogram of episode returns [default: <out>-returns.png beside --out].",
 )
-@click.option("--fps", type=click.IntRange(min=1), default=30, show_default=True)
+@click.option("--fps", type=count_type(1, MAX_FPS), default=30, show_default=True)
 def dataset_command(path, out, episodes, frames, hist, fps) -> None:
     """A grid of frames of evenly spaced episodes (.png) or whole episodes (.mp4/.gif), each with its return,
     plus a histogram of the returns of all episodes."""
@@ -134,6 +155,7 @@ def dataset_command(path, out, episodes, frames, hist, fps) -> None:
     kind = output_kind(out)
     hist = hist if hist is not None else out.with_name(f"{out.stem}-returns.png")
     output_kind(hist, (".png",))
+    distinct_outputs({"--out": out, "--hist": hist})
     require_extra("matplotlib")
     with open_dataset(path) as data:
         _save(

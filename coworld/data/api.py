@@ -20,6 +20,7 @@ from coworld.data.collect import default_dataset_path
 from coworld.data.reader import Dataset, open_dataset
 from coworld.data.schema import QUALITIES
 from coworld.errors import DatasetError
+from coworld.text import count
 
 
 @dataclass(frozen=True)
@@ -69,13 +70,13 @@ def resolve_dataset(path_or_name: str | Path) -> Path:
     quality = quality.replace("_", "-")
     if not task or quality not in QUALITIES:
         raise DatasetError(
-            f"{path_or_name!r} is neither a file nor a dataset name; a name is <task>-<quality> "
+            f"'{path_or_name}' is neither a file nor a dataset name; a name is <task>-<quality> "
             f"(quality one of {', '.join(QUALITIES)}), e.g. walker_uphill-medium-replay"
         )
     resolved = default_dataset_path(task, quality)
     if not resolved.exists():
         raise DatasetError(
-            f"no dataset named {path_or_name!r}: {resolved} does not exist; make it with "
+            f"no dataset named '{path_or_name}': {resolved} does not exist; make it with "
             f"`coworld collect --task {task} --quality {quality}` or pass the file's path"
         )
     return resolved
@@ -89,14 +90,32 @@ def load(path_or_name: str | Path) -> dict[str, np.ndarray]:
     ``infos/<key>`` (N, ...) for the dataset's per-step extras. ``path_or_name``: see :func:`resolve_dataset`.
     """
     with open_dataset(resolve_dataset(path_or_name)) as data:
+        warn_incomplete(data)
         return data.to_d4rl()
 
 
 def episodes(path_or_name: str | Path) -> Iterator[Episode]:
     """Each episode of the dataset in order, one at a time (only the current one's frames are in memory)."""
     with open_dataset(resolve_dataset(path_or_name)) as data:
+        warn_incomplete(data)
         for i in range(data.num_episodes):
             yield episode_record(data, i)
+
+
+def incomplete_text(data: Dataset) -> str:
+    """What to say of a dataset whose collection did not finish."""
+    return (
+        f"{data.path} is not complete (its collection was interrupted or is still running): it holds the"
+        f" {count(data.num_episodes, 'episode')} committed so far; finish it with `coworld collect ... --resume`"
+    )
+
+
+def warn_incomplete(data: Dataset) -> None:
+    """A Python warning (as the library's way to say it) when ``data`` is not complete."""
+    if not data.complete:
+        import warnings
+
+        warnings.warn(incomplete_text(data), UserWarning, stacklevel=3)
 
 
 def episode_record(data: Dataset, i: int) -> Episode:

@@ -17,6 +17,7 @@ from __future__ import annotations
 import io
 import os
 import shutil
+from collections.abc import Callable
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -24,7 +25,7 @@ from typing import Any
 import numpy as np
 import psutil
 
-from coworld.data.api import episode_record, resolve_dataset
+from coworld.data.api import episode_record, incomplete_text, resolve_dataset
 from coworld.data.reader import Dataset, open_dataset
 from coworld.errors import CoworldError, DatasetError
 from coworld.progress import progress_bar
@@ -57,11 +58,20 @@ def step_episode(data: Dataset, i: int) -> dict[str, np.ndarray]:
 
 
 def export_npz_episodes(
-    path_or_name: str | Path, out: str | Path, *, force: bool = False, progress: bool = False
+    path_or_name: str | Path,
+    out: str | Path,
+    *,
+    force: bool = False,
+    progress: bool = False,
+    incomplete: bool = False,
+    warn: Callable[[str], None] | None = None,
 ) -> Path:
-    """Write every episode of a dataset as a dreamer-style npz file into the new folder ``out``; returns ``out``."""
+    """Write every episode of a dataset as a dreamer-style npz file into the new folder ``out``; returns ``out``.
+
+    A dataset whose collection did not finish is refused unless ``incomplete`` (then ``warn`` is told)."""
     out = Path(out)
     with open_dataset(resolve_dataset(path_or_name)) as data:
+        check_complete(data, incomplete, warn)
         _check_destination(out, force, "folder")
         _remove_stale_temporaries(out)
         tmp = out.with_name(f".{out.name}.{os.getpid()}.tmp")
@@ -103,6 +113,8 @@ def export_minari(
     author: str | None = None,
     author_email: str | None = None,
     code_permalink: str | None = None,
+    incomplete: bool = False,
+    warn: Callable[[str], None] | None = None,
 ) -> str:
     """Write a dataset as the Minari dataset ``name`` (default ``coworld/<task>/<quality>-v0``); returns the name.
 
@@ -124,8 +136,11 @@ def export_minari(
     from minari.namespace import create_namespace, list_local_namespaces, validate_namespace
     from minari.storage.datasets_root_dir import get_dataset_path
 
+    if name is not None and not name.strip():
+        raise CoworldError("--name is empty; give a Minari dataset id such as coworld/walker_walk/medium-replay-v0")
     source = resolve_dataset(path_or_name)
     with open_dataset(source) as data:
+        check_complete(data, incomplete, warn)
         name = name or default_minari_name(data.task, data.quality)
         try:
             namespace, _, _ = parse_dataset_id(name)
@@ -136,7 +151,7 @@ def export_minari(
                 f"e.g. {default_minari_name(data.task, data.quality)}"
             ) from None
         final = Path(get_dataset_path(name))
-        _check_destination(final, force, "Minari dataset", f"; remove it with `minari delete {name}` or pass --force")
+        _check_destination(final, force, "Minari dataset", f", or remove it first with `minari delete {name}`")
         if namespace is not None and namespace not in list_local_namespaces():
             create_namespace(namespace)
         _remove_stale_temporaries(final)
@@ -229,9 +244,19 @@ def _minari_metadata(
 # -- writing safely ------------------------------------------------------------------------------------------
 
 
+def check_complete(data: Dataset, incomplete: bool, warn: Callable[[str], None] | None) -> None:
+    """Refuse a dataset whose collection did not finish, unless ``incomplete`` asks for it (then warn)."""
+    if data.complete:
+        return
+    if not incomplete:
+        raise DatasetError(f"{incomplete_text(data)}, or pass --incomplete to export those episodes")
+    if warn is not None:
+        warn(f"{incomplete_text(data)}; exporting those episodes (--incomplete)")
+
+
 def _check_destination(path: Path, force: bool, what: str, hint: str = "") -> None:
     if path.exists() and not force:
-        raise DatasetError(f"{path} already exists; pass --force to replace the {what}{hint or ''}")
+        raise DatasetError(f"{path} already exists; pass --force to replace the {what}{hint}")
     if path.exists() and not path.is_dir():
         raise DatasetError(f"{path} exists and is not a folder; choose another destination")
 

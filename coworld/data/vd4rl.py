@@ -141,6 +141,8 @@ def _natural_key(file: Path) -> list[Any]:
 def _scan_npz(path: Path, files: list[Path]) -> VD4RLSource:
     episodes, sizes = [], _Sizes()
     for file in files:
+        if not zipfile.is_zipfile(file):  # np.load would speak of pickles
+            raise DatasetError(f"{file}: not an npz archive (a zip of .npy arrays, as np.savez writes); remove it")
         try:
             with np.load(file, allow_pickle=False) as data:
                 missing = [key for key in NPZ_KEYS if key not in data.files]
@@ -337,6 +339,22 @@ def resize_frames(frames: np.ndarray, size: int) -> np.ndarray:
 # -- converting ----------------------------------------------------------------------------------------------
 
 
+def _check_resumable(out: Path, task: str, fingerprint: str) -> None:
+    """Refuse to resume ``out`` from other files or for another task, reading it only: a refused resume leaves the
+    file byte for byte as it was (opening it for writing already changes its header)."""
+    from coworld.data.reader import open_dataset
+
+    with open_dataset(out) as data:
+        theirs = data.metadata.get("collector") or {}
+        if data.task != task:
+            raise DatasetError(f"cannot resume {out}: it holds task {data.task}, not {task}; choose another --out")
+        if data.num_episodes and theirs.get("source_fingerprint") != fingerprint:
+            raise DatasetError(
+                f"cannot resume {out}: it was imported from other files ({theirs.get('source_path')}); "
+                f"pass --force to start over"
+            )
+
+
 def import_vd4rl(
     path: str | Path,
     out: str | Path | None = None,
@@ -387,6 +405,8 @@ def import_vd4rl(
     if quality is None:
         raise ConfigError(f"{path}: its folder names no V-D4RL quality; say which with --quality")
     out = Path(out) if out is not None else default_dataset_path(task, quality)
+    if resume and not force and out.exists():
+        _check_resumable(out, task, source.fingerprint())
     resized = source.image_size != side
     collector = {
         "algorithm": "import",

@@ -16,13 +16,15 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from coworld.report.results import RunResult, load_results, to_csv
-from coworld.storage import write_text_atomically
+from coworld.storage import check_writable, write_text_atomically
 
 
 @dataclass(frozen=True)
 class Report:
     results: list[RunResult]
     files: list[Path]
+    skipped: list[str]
+    """One line per file that could not be read (the report was written without it)."""
 
     @property
     def finished(self) -> int:
@@ -35,9 +37,12 @@ def write_report(root: str | Path, out: str | Path | None = None) -> Report:
 
     root = Path(root)
     out = Path(out) if out is not None else root
-    results = load_results(root)
+    skipped: list[str] = []
+    results = load_results(root, skipped)
+    skipped += [problem for r in results for problem in r.problems]
     tables.require_scipy()  # the optional dependencies, before anything is written
     plots.require_matplotlib()
+    check_writable(out, "--out")
     out.mkdir(parents=True, exist_ok=True)
     files = []
 
@@ -57,12 +62,12 @@ def write_report(root: str | Path, out: str | Path | None = None) -> Report:
     files += [out / name for _, name in figures]
 
     md_path = out / "report.md"
-    write_text_atomically(md_path, _markdown(root, results, figures))
+    write_text_atomically(md_path, _markdown(root, results, figures, skipped))
     files.insert(1, md_path)
-    return Report(results, files)
+    return Report(results, files, skipped)
 
 
-def _markdown(root: Path, results: list[RunResult], figures: list[tuple[str, str]]) -> str:
+def _markdown(root: Path, results: list[RunResult], figures: list[tuple[str, str]], skipped: list[str]) -> str:
     from coworld.report import tables
 
     finished = [r for r in results if r.final_return is not None]
@@ -94,6 +99,10 @@ def _markdown(root: Path, results: list[RunResult], figures: list[tuple[str, str
     if figures:
         lines += ["## Figures", ""]
         lines += [f"![{title}]({name})" for title, name in figures]
+        lines.append("")
+    if skipped:
+        lines += ["## Files skipped", "", "These could not be read; the report was made without them:", ""]
+        lines += [f"- {problem}" for problem in skipped]
         lines.append("")
     unfinished = [r for r in results if r.final_return is None]
     if unfinished:

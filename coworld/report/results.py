@@ -56,6 +56,8 @@ class RunResult:
     """Target-agent updates logged."""
     wall_time_s: float | None
     """Training time logged in metrics.jsonl (summed over resumed segments)."""
+    problems: tuple[str, ...] = ()
+    """One line per file of the run that could not be read (and was skipped), e.g. ``eval.json: not JSON``."""
 
     @property
     def pair(self) -> str:
@@ -87,20 +89,17 @@ CSV_COLUMNS = (
 )
 
 
-def find_run_dirs(root: str | Path) -> list[Path]:
-    """Every run folder under ``root`` (``root`` itself included), sorted."""
+def find_run_dirs(root: str | Path, problems: list[str] | None = None) -> list[Path]:
+    """Every run folder under ``root`` (``root`` itself included), sorted; a ``run.json`` that cannot be read is
+    skipped, with a line in ``problems``."""
     root = Path(root)
     if not root.is_dir():
         raise CoworldError(f"{root} is not a folder; pass a sweep folder or a folder of runs made by `coworld train`")
     found = []
     for path in sorted(root.rglob("run.json")):
-        try:
-            info = json.loads(path.read_text())
-        except (OSError, ValueError):
-            continue
-        info = run_description(info)  # a collection's online dreamerv2 run counts as the run it is
-        if isinstance(info, dict) and "algo" in info and "target" in info:
-            found.append(path.parent)
+        info = run_description(_json_object(path, problems if problems is not None else []))
+        if info is not None and isinstance(info.get("algo"), str) and isinstance(info.get("target"), str):
+            found.append(path.parent)  # a training run, or the online dreamerv2 run of a collection
     return found
 
 
@@ -111,7 +110,7 @@ def target_eval_return(record: Mapping[str, Any], algo: str) -> float | None:
     ``eval/return`` key but without the value check; the target agent's evaluations carry the value check.
     """
     value = record.get("eval/return")
-    if value is None:
+    if not _is_step(value):
         return None
     if algo == "coworld" and "eval/value_estimate" not in record:
         return None
@@ -120,7 +119,7 @@ def target_eval_return(record: Mapping[str, Any], algo: str) -> float | None:
 
 def learning_curve(run_dir: Path, algo: str, records: list[dict[str, Any]] | None = None) -> list[tuple[int, float]]:
     """(target updates, evaluation return) of each evaluation during training, in order."""
-    records = read_metrics(run_dir) if records is None else records
+    records = _metrics(run_dir, []) if records is None else records  # its problems: load_result reports them
     curve = []
     for record in records:
         value = target_eval_return(record, algo)
@@ -145,30 +144,66 @@ def _wall_time(records: list[dict[str, Any]]) -> float | None:
         t = record.get("time")
         if t is None:
             continue
+        if not _is_step(t):
+            continue
         if last is not None and t < last:
             total += last
         last = float(t)
     return None if last is None else total + last
 
 
-def _variant(run_dir: Path, algo: str) -> tuple[str, str | None]:
+def _variant(run_dir: Path, algo: str, problems: list[str]) -> tuple[str, str | None]:
     """(variant, pair source) from sweep-run.json, else the CoWorld switches in config.json."""
-    record_path = run_dir / "sweep-run.json"
-    if record_path.exists():
-        try:
-            record = json.loads(record_path.read_text())
-            return str(record.get("variant", "")), record.get("source")
-        except ValueError:
-            pass
+    record = _json_object(run_dir / "sweep-run.json", problems)
+    if record is not None:
+        source = record.get("source")
+        return str(record.get("variant", "")), source if isinstance(source, str) else None
     if algo != "coworld":
         return "", None
-    try:
-        config = json.loads((run_dir / "config.json").read_text())
-    except (OSError, ValueError):
+    switches = (_json_object(run_dir / "config.json", []) or {}).get("coworld")  # its problems: load_result's
+    if not isinstance(switches, dict):
         return "", None
-    switches = config.get("coworld", {})
     off = [name for key, name in ABLATION_SWITCHES if switches.get(key) is False]
     return "+".join(off), None
+
+
+def _json_object(path: Path, problems: list[str]) -> dict[str, Any] | None:
+    """The JSON object in ``path``; None when the file is missing, or (with a line in ``problems``) unreadable,
+    not JSON, or JSON of another shape."""
+    try:
+        data = json.loads(path.read_bytes())
+    except FileNotFoundError:
+        return None
+    except OSError as err:
+        problems.append(f"{path}: cannot be read ({err.strerror})")
+        return None
+    except ValueError as err:  # UnicodeDecodeError included
+        problems.append(f"{path}: not JSON ({str(err).splitlines()[0][:80]})")
+        return None
+    if not isinstance(data, dict):
+        problems.append(f"{path}: holds a JSON {type(data).__name__}, not an object")
+        return None
+    return data
+
+
+def _metrics(run_dir: Path, problems: list[str]) -> list[dict[str, Any]]:
+    """The metrics records of a run; none (with a line in ``problems``) when metrics.jsonl cannot be read."""
+    try:
+        records = read_metrics(run_dir)
+    except OSError as err:
+        problems.append(f"{run_dir / 'metrics.jsonl'}: cannot be read ({err.strerror})")
+        return []
+    except UnicodeDecodeError:
+        problems.append(f"{run_dir / 'metrics.jsonl'}: not UTF-8 text; no learning curve")
+        return []
+    good = [r for r in records if isinstance(r, dict) and _is_step(r.get("step"))]
+    if len(good) < len(records):
+        problems.append(f"{run_dir / 'metrics.jsonl'}: {len(records) - len(good)} records without a step skipped")
+    return good
+
+
+def _is_step(value: Any) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
 
 
 def normalized(task: str, value: float | None) -> float | None:
@@ -191,30 +226,38 @@ def _mean(values: Any) -> float | None:
 
 
 def load_result(run_dir: Path) -> RunResult:
-    """The :class:`RunResult` of one run folder."""
-    info = run_description(json.loads((run_dir / "run.json").read_text()))
+    """The :class:`RunResult` of one run folder; a file of it that cannot be read is skipped and named in
+    ``problems``."""
+    problems: list[str] = []
+    info = run_description(_json_object(run_dir / "run.json", problems)) or {}
     algo, target = str(info["algo"]), str(info["target"])
     if info.get("online"):
         algo = ONLINE_ALGO  # the agent a `coworld collect --policy dreamerv2` trained in the target task itself
-    try:
-        seed = int(json.loads((run_dir / "config.json").read_text())["seed"])
-    except (OSError, ValueError, KeyError):
+    config = _json_object(run_dir / "config.json", problems) or {}
+    seed = config.get("seed", -1)
+    if not (isinstance(seed, int) and not isinstance(seed, bool)):
+        problems.append(f"{run_dir / 'config.json'}: its seed is {seed!r}, not a whole number")
         seed = -1
-    variant, pair_source = _variant(run_dir, algo)
-    source = info.get("source") or pair_source
+    variant, pair_source = _variant(run_dir, algo, problems)
+    source = info.get("source") if isinstance(info.get("source"), str) else None
+    source = source or pair_source
     final = std = success = estimate = true = None
     episodes = None
-    try:
-        result = json.loads((run_dir / "eval.json").read_text())
-        returns = [float(r) for r in result["returns"]]
-        final, episodes = _mean(returns), len(returns)
-        std = float(result.get("std", 0.0))
-        success = result.get("success_rate")
-        estimate = _mean(result.get("value_estimate") or [])
-        true = _mean(result.get("value_true") or [])
-    except (OSError, ValueError, KeyError, TypeError):
-        pass
-    records = read_metrics(run_dir)
+    result = _json_object(run_dir / "eval.json", problems)
+    if result is not None:
+        try:
+            returns = [float(r) for r in result["returns"]]
+            if not returns:
+                raise ValueError("no returns")
+            final, episodes = _mean(returns), len(returns)
+            std = float(result.get("std", 0.0))
+            success = None if result.get("success_rate") is None else float(result["success_rate"])
+            estimate = _mean([float(v) for v in result.get("value_estimate") or []])
+            true = _mean([float(v) for v in result.get("value_true") or []])
+        except (ValueError, KeyError, TypeError) as err:
+            problems.append(f"{run_dir / 'eval.json'}: not an evaluation record ({type(err).__name__}: {err})")
+            final = std = success = estimate = true = episodes = None
+    records = _metrics(run_dir, problems)
     return RunResult(
         run_dir=str(run_dir),
         algo=algo,
@@ -225,18 +268,20 @@ def load_result(run_dir: Path) -> RunResult:
         final_return=final,
         return_std=std,
         episodes=episodes,
-        success_rate=None if success is None else float(success),
+        success_rate=success,
         value_estimate=estimate,
         value_true=true,
         normalized_score=normalized(target, final),
         updates=_updates(records, algo),
         wall_time_s=_wall_time(records),
+        problems=tuple(problems),
     )
 
 
-def load_results(root: str | Path) -> list[RunResult]:
-    """Every run under ``root``; raises CoworldError when there is none."""
-    dirs = find_run_dirs(root)
+def load_results(root: str | Path, problems: list[str] | None = None) -> list[RunResult]:
+    """Every run under ``root``; raises CoworldError when there is none. Unreadable ``run.json`` files are skipped
+    with a line in ``problems`` (each run's other files: :attr:`RunResult.problems`)."""
+    dirs = find_run_dirs(root, problems)
     if not dirs:
         raise CoworldError(f"no run folders (with a run.json) under {root}; run `coworld sweep` or `coworld train`")
     return [load_result(d) for d in dirs]

@@ -32,6 +32,20 @@ from coworld.training.train import ALGOS
 
 COLLECT_POLICIES = ("dreamerv2", "random")
 QUALITIES = ("medium-replay", "medium", "expert")
+SEED_MAX = 2**32 - 1
+"""The largest seed, as every command takes it (``--seed``)."""
+MAX_SEEDS = 1_000
+"""The most seeds of one grid."""
+MAX_COUNT = 10**9
+"""The largest count of episodes or steps, the command line's bound (``coworld.commands.options.MAX_COUNT``)."""
+
+
+def check_count(name: str, value: int, low: int = 1, high: int = MAX_COUNT) -> None:
+    """Raise one ConfigError line unless ``value`` is a whole number in ``[low, high]``."""
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise ConfigError(f"{name} must be a whole number, got {value!r}")
+    if not low <= value <= high:
+        raise ConfigError(f"{name} must be in [{low}, {high:,}], got {value:,}")
 
 
 @dataclass(frozen=True)
@@ -68,8 +82,12 @@ class DataSpec:
                 raise ConfigError("data set= overrides are for the dreamerv2 collector, not random collection")
         for name in ("episodes", "max_steps"):
             value = getattr(self, name)
-            if value is not None and value < 1:
-                raise ConfigError(f"data {name} must be at least 1, got {value}")
+            if value is not None:
+                check_count(f"data {name}", value)
+        check_count("data seed", self.seed, 0, SEED_MAX)
+        for name in ("policy", "quality"):
+            if not isinstance(getattr(self, name), str):
+                raise ConfigError(f"data {name} must be a string, got {getattr(self, name)!r}")
 
 
 @dataclass(frozen=True)
@@ -126,17 +144,25 @@ class SweepSpec:
                 raise CoworldError(f"unknown algorithm {algo!r}; choose from {', '.join(ALGOS)}")
         if not self.seeds or len(set(self.seeds)) != len(self.seeds):
             raise CoworldError(f"seeds must be distinct and at least one, got {list(self.seeds)}")
+        if len(self.seeds) > MAX_SEEDS:
+            raise CoworldError(f"at most {MAX_SEEDS:,} seeds, got {len(self.seeds):,}")
+        for seed in self.seeds:
+            check_count("a seed", seed, 0, SEED_MAX)
         names = [name for name, _ in self.variants]
         if not names or len(set(names)) != len(names):
             raise CoworldError(f"variant names must be distinct and at least one, got {names}")
         for name in names:
             if name and not name.replace("-", "").replace("_", "").isalnum():
                 raise CoworldError(f"variant name {name!r}: use letters, digits, '-' and '_' only")
-        if self.eval_episodes < 1:
-            raise CoworldError(f"eval episodes must be at least 1, got {self.eval_episodes}")
+        check_count("eval episodes", self.eval_episodes)
         self.data.check()
         for _, extra in self.variants:  # every run's config must build (unknown keys, bad values)
             make_config(self.preset, [*self.overrides, *extra])
+        if self.data.policy == "dreamerv2":  # and the collector's: the same preset with the data's own --set
+            try:
+                make_config(self.preset, self.data.overrides)
+            except ConfigError as err:
+                raise ConfigError(f"data set: {err}") from None
         return self
 
     def runs(self) -> list[Run]:
@@ -298,13 +324,13 @@ def seeds_from(value: int | Sequence[int]) -> tuple[int, ...]:
     if isinstance(value, bool):
         raise CoworldError(f"seeds must be a count or a list of integers, got {value!r}")
     if isinstance(value, int):
-        if value < 1:
-            raise CoworldError(f"--seeds must be at least 1, got {value}")
+        check_count("seeds", value, 1, MAX_SEEDS)
         return tuple(range(value))
-    try:
-        return tuple(int(seed) for seed in value)
-    except (TypeError, ValueError):
-        raise CoworldError(f"seeds must be a count or a list of integers, got {value!r}") from None
+    if isinstance(value, str) or not isinstance(value, Sequence):
+        raise CoworldError(f"seeds must be a count or a list of integers, got {value!r}")
+    for seed in value:
+        check_count("a seed", seed, 0, SEED_MAX)
+    return tuple(value)
 
 
 _FILE_KEYS = {"table", "pairs", "algos", "seeds", "variants", "preset", "set", "eval_episodes", "data", "ablation"}
@@ -326,36 +352,61 @@ def read_grid_file(path: str | Path) -> dict[str, Any]:
     if unknown:
         raise CoworldError(f"{path}: unknown keys {sorted(unknown)}; valid keys: {', '.join(sorted(_FILE_KEYS))}")
     out: dict[str, Any] = {}
-    try:
-        if "table" in data:
-            out["table"] = str(data["table"])
-        if "pairs" in data:
-            out["pairs"] = parse_pairs(",".join(data["pairs"]))
-        if "algos" in data:
-            out["algos"] = tuple(str(algo) for algo in data["algos"])
-        if "seeds" in data:
+    where = str(path)
+    if "table" in data:
+        out["table"] = _typed(where, "table", data["table"], str)
+    if "pairs" in data:
+        out["pairs"] = parse_pairs(",".join(_strings(where, "pairs", data["pairs"])))
+    if "algos" in data:
+        out["algos"] = _strings(where, "algos", data["algos"])
+    if "seeds" in data:
+        try:
             out["seeds"] = seeds_from(data["seeds"])
-        if "variants" in data:
-            out["variants"] = tuple((str(name), tuple(map(str, extra))) for name, extra in data["variants"].items())
-        if "ablation" in data:
-            out["ablation"] = bool(data["ablation"])
-        if "preset" in data:
-            out["preset"] = str(data["preset"])
-        if "set" in data:
-            out["overrides"] = tuple(str(item) for item in data["set"])
-        if "eval_episodes" in data:
-            out["eval_episodes"] = int(data["eval_episodes"])
-        if "data" in data:
-            bad = set(data["data"]) - _DATA_KEYS
-            if bad:
-                raise CoworldError(f"{path}: unknown [data] keys {sorted(bad)}; valid: {', '.join(sorted(_DATA_KEYS))}")
-            fields = dict(data["data"])
-            if "set" in fields:
-                fields["overrides"] = tuple(str(item) for item in fields.pop("set"))
-            out["data"] = fields
-    except (TypeError, ValueError, AttributeError) as err:
-        raise CoworldError(f"{path}: a value has the wrong type ({err})") from None
+        except CoworldError as err:
+            raise CoworldError(f"{path}: {err}") from None
+    if "variants" in data:
+        variants = _typed(where, "variants", data["variants"], dict)
+        out["variants"] = tuple((name, _strings(where, f"variants.{name}", extra)) for name, extra in variants.items())
+    if "ablation" in data:
+        out["ablation"] = _typed(where, "ablation", data["ablation"], bool)
+    if "preset" in data:
+        out["preset"] = _typed(where, "preset", data["preset"], str)
+    if "set" in data:
+        out["overrides"] = _strings(where, "set", data["set"])
+    if "eval_episodes" in data:
+        out["eval_episodes"] = _typed(where, "eval_episodes", data["eval_episodes"], int)
+    if "data" in data:
+        fields = dict(_typed(where, "data", data["data"], dict))
+        bad = set(fields) - _DATA_KEYS
+        if bad:
+            raise CoworldError(f"{path}: unknown [data] keys {sorted(bad)}; valid: {', '.join(sorted(_DATA_KEYS))}")
+        kinds = {"policy": str, "quality": str, "episodes": int, "max_steps": int, "seed": int}
+        for key, kind in kinds.items():
+            if key in fields:
+                fields[key] = _typed(where, f"data.{key}", fields[key], kind)
+        if "set" in fields:
+            fields["overrides"] = _strings(where, "data.set", fields.pop("set"))
+        out["data"] = fields
     return out
+
+
+_KIND_NAMES = {str: "a string", bool: "true or false", int: "a whole number", dict: "a table", list: "a list"}
+
+
+def _typed(path: str, key: str, value: Any, kind: type) -> Any:
+    """``value`` if TOML gave it the type ``kind`` (a bool is not a whole number here), else one ConfigError line."""
+    if isinstance(value, kind) and not (kind is int and isinstance(value, bool)):
+        return value
+    raise ConfigError(f"{path}: {key} must be {_KIND_NAMES[kind]}, got {value!r}")
+
+
+def _strings(path: str, key: str, value: Any) -> tuple[str, ...]:
+    """A TOML list of strings as a tuple, else one ConfigError line (a lone string is not a list)."""
+    items = _typed(path, key, value, list)
+    for item in items:
+        if not isinstance(item, str):
+            raise ConfigError(f"{path}: {key} must be a list of strings, got {value!r}")
+    return tuple(items)
 
 
 def build_spec(

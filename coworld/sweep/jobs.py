@@ -108,6 +108,7 @@ class JobProcess:
         self._cpu = 0.0
         self.result: JobResult | None = None
         self._stopping = False
+        self._stop_deadline: float | None = None
         job.log.parent.mkdir(parents=True, exist_ok=True)
         self._log = open(job.log, "ab")
         self._write(f"==== {time.strftime('%Y-%m-%d %H:%M:%S')} {job.name}: start on {socket.gethostname()}\n")
@@ -162,14 +163,21 @@ class JobProcess:
             time.sleep(interval)
         return result
 
-    def stop(self, grace: float = 5.0) -> None:
-        """End the job now: SIGTERM to the running command's process group, SIGKILL after ``grace`` seconds."""
+    def stop(self, grace: float = 5.0, wait: bool = True) -> None:
+        """End the job now: SIGTERM to the running command's process group, SIGKILL after ``grace`` seconds.
+
+        ``wait=False`` only sends the SIGTERM (once): stopping several jobs, signal them all, then wait for each.
+        """
         if self._proc is None:
             return
-        self._stopping = True
         pgid = self._proc.pid
-        _signal_group(pgid, signal.SIGTERM)
-        deadline = time.time() + grace
+        if self._stop_deadline is None:
+            self._stopping = True
+            self._stop_deadline = time.time() + grace
+            _signal_group(pgid, signal.SIGTERM)
+        if not wait:
+            return
+        deadline = self._stop_deadline
         while time.time() < deadline and self.poll() is None:
             time.sleep(0.1)
         if self.result is None:

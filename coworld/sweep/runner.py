@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 import signal
 import threading
 import time
@@ -27,6 +28,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from coworld import interrupt
 from coworld.config import first_difference
 from coworld.errors import CoworldError, DatasetError
 from coworld.sweep.grid import Run, SweepSpec
@@ -332,11 +334,8 @@ def run_sweep(
     Raises CoworldError (one line) if the folder holds another grid or another sweep works on it.
     """
     dirs = SweepDirs.at(root, data_dir)
-    if execution.gpus_per_run and execution.ray is None:
-        raise CoworldError("--gpus-per-run is a Ray resource request; pass --ray ADDRESS (locally, runs share the GPU)")
-    if execution.jobs < 1 or execution.threads < 1:
-        raise CoworldError("--jobs and --threads must be at least 1")
-    ray = import_ray() if execution.ray is not None else None
+    check_execution(execution)
+    ray = connect_ray(execution.ray) if execution.ray is not None else None
     dirs.root.mkdir(parents=True, exist_ok=True)
     lock = SweepLock(dirs.root)
     try:
@@ -366,6 +365,18 @@ def run_sweep(
         return Outcome(len(the_plan.runs), len(the_plan.finished), tuple(tracker.results), failed)
     finally:
         lock.release()
+
+
+def check_execution(execution: Execution) -> None:
+    """What every run of the sweep would find wrong with how it runs, checked once before anything is made."""
+    if execution.gpus_per_run and execution.ray is None:
+        raise CoworldError("--gpus-per-run is a Ray resource request; pass --ray ADDRESS (locally, runs share the GPU)")
+    if execution.jobs < 1 or execution.threads < 1:
+        raise CoworldError("--jobs and --threads must be at least 1")
+    if execution.ray is None and execution.device is not None:  # on Ray, the workers' devices count, not this one's
+        from coworld.training.run import resolve_device
+
+        resolve_device(execution.device)
 
 
 def _log_of(plan: Plan, name: str) -> Path:
@@ -448,23 +459,87 @@ def _run_local(plan: Plan, execution: Execution, tracker: _Tracker) -> None:
         tracker.refresh()
     finally:
         for process in active:
+            process.stop(wait=False)  # all at once: each gets its grace period at the same time
+        for process in active:
             process.stop()
         restore()
 
 
 def _stop_on_sigterm() -> Callable[[], None]:
-    """Turn SIGTERM into KeyboardInterrupt while the sweep runs (so its children are stopped); returns the undo."""
+    """Stop on SIGTERM (raising :class:`~coworld.interrupt.Interrupted`, exit code 143 in the CLI) so the children
+    are stopped, where nobody handles SIGTERM yet (the CLI does already); returns the undo."""
     if threading.current_thread() is not threading.main_thread():
+        return lambda: None
+    if signal.getsignal(signal.SIGTERM) not in (signal.SIG_DFL, None):
         return lambda: None
 
     def handler(signum: int, frame: Any) -> None:
-        raise KeyboardInterrupt
+        raise interrupt.Interrupted(signum)
 
     previous = signal.signal(signal.SIGTERM, handler)
     return lambda: signal.signal(signal.SIGTERM, previous)
 
 
 # -- Ray ------------------------------------------------------------------------------------------------------------
+
+
+RAY_CONNECT_SECONDS = 5.0
+"""How long the sweep waits for a Ray cluster's head to answer before it gives up (Ray itself retries for minutes)."""
+_HTTP2_PREFACE = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n" + bytes([0, 0, 0, 4, 0, 0, 0, 0, 0])
+"""What a gRPC client sends first: HTTP/2's connection preface and an empty SETTINGS frame."""
+
+
+def connect_ray(address: str) -> Any:
+    """Ray, connected to the cluster at ``address`` ('local' starts one here); one CoworldError line within about
+    :data:`RAY_CONNECT_SECONDS` when nothing there answers as a Ray head does, before Ray is asked to connect."""
+    import logging
+
+    ray = import_ray()
+    if ray.is_initialized():
+        return ray
+    quiet = {"log_to_driver": False, "logging_level": logging.ERROR}
+    if address == "local":
+        ray.init(include_dashboard=False, **quiet)
+        return ray
+    target = os.environ.get("RAY_ADDRESS", "") if address == "auto" else address
+    if target and target != "auto":
+        check_ray_head(target, given="RAY_ADDRESS" if address == "auto" else "--ray")
+    try:
+        ray.init(address=address, **quiet)
+    except (ConnectionError, ValueError, RuntimeError) as err:
+        raise CoworldError(f"cannot connect to Ray at {address} ({_first_line(err)}); {_RAY_HINT}") from None
+    return ray
+
+
+_RAY_HINT = "start a cluster with `ray start --head`, or pass --ray local to start one here"
+
+
+def check_ray_head(address: str, given: str = "--ray") -> None:
+    """Refuse, in one line, an address that is not ``HOST:PORT`` (or ``ray://HOST:PORT``) or where no gRPC server
+    answers (a Ray head's GCS speaks gRPC: it answers HTTP/2's preface with a SETTINGS frame)."""
+    import socket
+
+    host, sep, port = address.removeprefix("ray://").rpartition(":")
+    if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise CoworldError(
+            f"{given} {address!r} is not an address: use HOST:PORT of a Ray cluster's head (e.g. 10.0.0.5:6379),"
+            " 'auto' for the one started on this machine, or 'local'"
+        )
+    try:
+        with socket.create_connection((host.strip("[]"), int(port)), timeout=RAY_CONNECT_SECONDS) as conn:
+            conn.settimeout(RAY_CONNECT_SECONDS)
+            conn.sendall(_HTTP2_PREFACE)
+            reply = conn.recv(9)
+    except OSError as err:
+        reason = "no answer" if isinstance(err, TimeoutError) else err.strerror or type(err).__name__
+        raise CoworldError(f"no Ray cluster answers at {address} ({reason}); {_RAY_HINT}") from None
+    if len(reply) < 4 or reply[3] != 4:  # a SETTINGS frame's type byte
+        raise CoworldError(f"{address} answers, but not as a Ray cluster's head does; check the port ({_RAY_HINT})")
+
+
+def _first_line(err: BaseException) -> str:
+    text = str(err).strip()
+    return text.splitlines()[0][:200] if text else type(err).__name__
 
 
 def import_ray() -> Any:
@@ -483,10 +558,7 @@ def _ray_task(job: Job, threads: int, needed: JobResult | None = None) -> JobRes
 def _run_ray(ray: Any, plan: Plan, execution: Execution, tracker: _Tracker) -> None:
     """Each job a Ray task requesting ``threads`` CPUs and ``gpus_per_run`` GPUs; runs wait for their dataset."""
     if not ray.is_initialized():
-        if execution.ray == "local":
-            ray.init(include_dashboard=False, log_to_driver=False)
-        else:
-            ray.init(address=execution.ray, log_to_driver=False)
+        connect_ray(execution.ray or "local")
     task = ray.remote(_ray_task).options(
         num_cpus=execution.threads, num_gpus=execution.gpus_per_run, max_retries=0, name="coworld-sweep-job"
     )

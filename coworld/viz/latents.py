@@ -27,7 +27,7 @@ from coworld import envs
 from coworld.errors import CoworldError
 from coworld.viz.media import require_extra
 from coworld.viz.predictions import batch_tensors
-from coworld.viz.runs import EpisodeSource, count_episodes, episode_windows, get_episodes
+from coworld.viz.runs import EpisodeSource, EpisodeStore, count_episodes, episode_windows, get_episodes
 
 __all__ = [
     "LatentGroup",
@@ -291,9 +291,19 @@ def latents_of_run(
     source_task = source or run.info.get("source")
     with contextlib.ExitStack() as stack:
         target = stack.enter_context(open_dataset(target_path))
+        if target.task != run.info["target"]:
+            raise CoworldError(f"{target_path} holds {target.task} episodes, not the run's target {run.info['target']}")
         if source_dataset is not None or (source is None and replay.exists()):
             source_path = Path(source_dataset) if source_dataset is not None else replay
             source_frames: Any = stack.enter_context(open_dataset(source_path))
+            expected = source_task
+            if expected is not None and source_frames.task != expected:
+                raise CoworldError(
+                    f"{source_path} holds {source_frames.task} episodes, not the source task {expected}; pass a"
+                    f" {expected} dataset as --source-dataset"
+                )
+            if source_frames.task == run.info["target"]:
+                raise CoworldError(f"{source_path} holds target episodes ({source_frames.task}); pass source ones")
             where = f"source frames from {source_path}"
         elif source_task is not None:
             count = max(2, -(-frames // envs.task_spec(source_task).episode_length))
@@ -301,6 +311,10 @@ def latents_of_run(
             where = f"source frames from {count} random-action {source_task} episodes"
         else:
             raise CoworldError("no source frames: pass --source-dataset PATH or --source TASK (random actions)")
+        held = min(d.num_steps for d in (target, source_frames) if isinstance(d, EpisodeStore))
+        if frames > held:  # more would show the same frames again
+            where = f"{where} (--frames {frames} capped to {held:,}: the data hold no more)"
+            frames = held
         report = run_latents(
             run.world_models(), source_frames, target, frames=frames, length=length, seed=seed, perplexity=perplexity
         )

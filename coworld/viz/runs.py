@@ -79,6 +79,8 @@ def load_run_models(path: str | Path, device: str = "auto") -> RunModels:
     from coworld.training.run import load_run, resolve_device
 
     path = Path(path)
+    if not path.exists():
+        raise CheckpointError(f"no run folder or checkpoint at {path}; pass a run folder made by `coworld train`")
     run_dir = path if path.is_dir() else path.parent
     ckpt = path / CHECKPOINT_NAME if path.is_dir() else path
     config, info = load_run(run_dir)

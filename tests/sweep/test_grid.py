@@ -117,7 +117,7 @@ def test_flags_replace_the_tables_values():
         ({"table": "toy", "algos": ("dqn",)}, CoworldError, "unknown algorithm"),
         ({"table": "toy", "seeds": (1, 1)}, CoworldError, "distinct"),
         ({"table": "toy", "overrides": ["coworld.nope=1"]}, ConfigError, "unknown config key"),
-        ({"table": "toy", "overrides": ["coworld.iterations=many"]}, ConfigError, "takes a int"),
+        ({"table": "toy", "overrides": ["coworld.iterations=many"]}, ConfigError, "takes a whole number"),
         ({"table": "toy", "preset": "huge"}, ConfigError, "unknown preset"),
         ({"table": "toy", "data": {"episodes": None}}, ConfigError, "random dataset needs"),
         ({"table": "toy", "data": {"colour": "red"}}, CoworldError, "bad data setting"),
