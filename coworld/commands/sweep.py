@@ -7,6 +7,7 @@ import sys
 import click
 
 from coworld.sweep.grid import TABLES
+from coworld.training.train import ALGOS
 
 
 @click.command()
@@ -21,7 +22,7 @@ from coworld.sweep.grid import TABLES
 )
 @click.option("--grid", "grid_file", type=click.Path(dir_okay=False), help="A TOML grid file (see the README).")
 @click.option("--pairs", help="SOURCE:TARGET[,SOURCE:TARGET...], e.g. walker_walk:walker_uphill.")
-@click.option("--algos", help="Comma-separated algorithms: coworld,dreamerv2,curl,curl-cql.")
+@click.option("--algos", help=f"Comma-separated algorithms: {','.join(ALGOS)}.")
 @click.option("--seeds", type=int, help="Seeds 0..N-1 of every run.")
 @click.option("--preset", help="Config preset of every run: tiny or paper.")
 @click.option(
