@@ -61,7 +61,7 @@ from coworld.losses.curl import (
 )
 from coworld.models.curl import Actor, BilinearSimilarity, Critic, center_crop, random_crop, squashed_gaussian_sample
 
-__all__ = ["Curl", "make_sampler", "polyak", "stack_frames"]
+__all__ = ["Curl", "load_networks", "make_sampler", "polyak", "stack_frames"]
 
 PolicyState = np.ndarray | None
 """Frame stack of each environment, ``uint8 (N, k*C, H, W)``; None at the start of a run."""
@@ -111,6 +111,31 @@ def stack_frames(
             restart = np.asarray(is_first, dtype=bool).reshape(N)
             stack[restart] = fresh[restart]
     return np.ascontiguousarray(stack, dtype=np.uint8)
+
+
+def load_networks(
+    state: Mapping[str, Any],
+    *,
+    kind: str,
+    action_size: int,
+    networks: Mapping[str, nn.Module],
+    optimizers: Mapping[str, torch.optim.Optimizer],
+) -> None:
+    """Load a pixel baseline's checkpoint ``state`` into its networks and optimisers (by name); a checkpoint of
+    another agent, action size or network size is refused with one line (CheckpointError)."""
+    if state.get("kind") != kind or state.get("action_size") != action_size:
+        raise CheckpointError(
+            f"checkpoint is of a {state.get('kind')} agent with {state.get('action_size')} actions, this run is"
+            f" {kind} with {action_size}; use the run folder the checkpoint came from"
+        )
+    try:
+        for name, network in networks.items():
+            network.load_state_dict(state[name])
+    except RuntimeError as err:
+        first = str(err).strip().splitlines()[0]
+        raise CheckpointError(f"checkpoint does not fit this config's networks ({first[:160]})") from None
+    for name, optimizer in optimizers.items():
+        optimizer.load_state_dict(state["optimizers"][name])
 
 
 def polyak(target: nn.Module, source: nn.Module, tau: float) -> None:
@@ -392,23 +417,10 @@ class Curl:
 
     def load_state_dict(self, state: Mapping[str, Any]) -> None:
         """Restore what :meth:`state_dict` saved; a checkpoint of the other variant or action size is refused."""
-        kind = "curl-cql" if self.cql else "curl"
-        if state.get("kind") != kind or state.get("action_size") != self.action_size:
-            raise CheckpointError(
-                f"checkpoint is of a {state.get('kind')} agent with {state.get('action_size')} actions, this run is"
-                f" {kind} with {self.action_size}; use the run folder the checkpoint came from"
-            )
-        try:
-            self.critic.load_state_dict(state["critic"])
-            self.critic_target.load_state_dict(state["critic_target"])
-            self.actor.load_state_dict(state["actor"])
-            self.similarity.load_state_dict(state["similarity"])
-        except RuntimeError as err:
-            first = str(err).strip().splitlines()[0]
-            raise CheckpointError(f"checkpoint does not fit this config's networks ({first[:160]})") from None
+        networks = {"critic": self.critic, "critic_target": self.critic_target, "actor": self.actor}
+        load_networks(state, kind="curl-cql" if self.cql else "curl", action_size=self.action_size,
+                      networks={**networks, "similarity": self.similarity}, optimizers=self.optimizers)  # fmt: skip
         with torch.no_grad():
             self.log_alpha.copy_(state["log_alpha"])
-        for name, opt in self.optimizers.items():
-            opt.load_state_dict(state["optimizers"][name])
         self.updates = int(state["updates"])
         self._actor_metrics = {k: float(v) for k, v in state.get("actor_metrics", {}).items()}

@@ -31,11 +31,10 @@ from typing import Any
 import numpy as np
 import torch
 
-from coworld.agents.curl import polyak, stack_frames
+from coworld.agents.curl import load_networks, polyak, stack_frames
 from coworld.config import Config
 from coworld.data.reader import Dataset
 from coworld.data.transitions import TransitionSampler
-from coworld.errors import CheckpointError
 from coworld.losses.curl import sac_critic_target, twin_q_loss
 from coworld.losses.drqbc import actor_terms, clipped_noise_action, exploration_std
 from coworld.models.curl import Critic, random_crop
@@ -196,18 +195,8 @@ class DrqBc:
 
     def load_state_dict(self, state: Mapping[str, Any]) -> None:
         """Restore what :meth:`state_dict` saved; another agent's checkpoint is refused with one line."""
-        if state.get("kind") != CHECKPOINT_KIND or state.get("action_size") != self.action_size:
-            raise CheckpointError(
-                f"checkpoint is of a {state.get('kind')} agent with {state.get('action_size')} actions, this run is"
-                f" {CHECKPOINT_KIND} with {self.action_size}; use the run folder the checkpoint came from"
-            )
-        try:
-            self.critic.load_state_dict(state["critic"])
-            self.critic_target.load_state_dict(state["critic_target"])
-            self.actor.load_state_dict(state["actor"])
-        except RuntimeError as err:
-            first = str(err).strip().splitlines()[0]
-            raise CheckpointError(f"checkpoint does not fit this config's networks ({first[:160]})") from None
-        for name, opt in self.optimizers.items():
-            opt.load_state_dict(state["optimizers"][name])
+        networks = {"critic": self.critic, "critic_target": self.critic_target, "actor": self.actor}
+        load_networks(
+            state, kind=CHECKPOINT_KIND, action_size=self.action_size, networks=networks, optimizers=self.optimizers
+        )
         self.updates = int(state["updates"])
