@@ -302,6 +302,77 @@ class CurlConfig:
 
 
 @dataclass(frozen=True)
+class DrqBcConfig:
+    """DrQ+BC (V-D4RL's model-free baseline): DrQ-v2's augmented actor-critic plus TD3+BC's behaviour cloning.
+
+    Defaults are V-D4RL's offline DMC settings (``drqbc/cfgs/config.yaml``, ``cfgs/algo/drqv2.yaml`` and
+    ``cfgs/task/offline_dmc.yaml`` of github.com/conglu1997/v-d4rl); the ``tiny`` preset shrinks networks and batch.
+    """
+
+    frame_stack: Annotated[int, AT_LEAST_1] = 3
+    """Stacked frames per observation (V-D4RL ``frame_stack: 3``)."""
+    pad: Annotated[int, NON_NEGATIVE] = 4
+    """Random shift: pad this many replicated pixels, crop back to 64 (DrQ-v2 ``RandomShiftsAug(pad=4)``)."""
+    num_filters: Annotated[int, AT_LEAST_1] = 32
+    """Conv channels per layer (DrQ-v2 encoder: 32)."""
+    num_layers: Annotated[int, Range(1, 16)] = 4
+    """Conv layers, the first with stride 2 (DrQ-v2 encoder: 4; at most 16 leave a pixel of a 64 x 64 frame)."""
+    feature_dim: Annotated[int, AT_LEAST_1] = 50
+    """Size of the actor's and critic's ``Linear -> LayerNorm -> tanh`` trunk (V-D4RL ``feature_dim: 50``)."""
+    hidden: Annotated[int, AT_LEAST_1] = 1024
+    """Units of the actor and critic MLPs (``hidden_dim: 1024``)."""
+    batch_size: Annotated[int, AT_LEAST_1] = 256
+    """Transitions per batch (``batch_size: 256``)."""
+    updates: Annotated[int, AT_LEAST_1] = 550_000
+    """Gradient updates of a run: V-D4RL trains ``num_train_frames: 1100000`` steps with an update every
+    ``update_every_steps: 2``."""
+    lr: Annotated[float, POSITIVE] = 3e-4
+    """Learning rate of encoder, actor and critic (``offline_dmc.yaml``: ``lr: 3e-4``)."""
+    discount: Annotated[float, Range(0, 1, low_open=True)] = 0.99
+    """gamma (``discount: 0.99``)."""
+    critic_tau: Annotated[float, Range(0, 1, low_open=True)] = 0.01
+    """Polyak rate of the target critic (``critic_target_tau: 0.01``)."""
+    bc_weight: Annotated[float, NON_NEGATIVE] = 2.5
+    """alpha of TD3+BC: the Q term is scaled by ``alpha / mean|Q|`` (``bc_weight: 2.5``; Fujimoto & Gu 2021, Eq. 5)."""
+    std_init: Annotated[float, POSITIVE] = 1.0
+    """Exploration std of the actor at update 0 (``stddev_schedule: linear(1.0,0.1,250000)``)."""
+    std_final: Annotated[float, POSITIVE] = 0.1
+    """Exploration std at the end of the schedule (the same schedule)."""
+    std_updates: Annotated[int, AT_LEAST_1] = 125_000
+    """Updates over which the std falls linearly: the schedule's 250,000 steps at one update every 2 steps."""
+    std_clip: Annotated[float, POSITIVE] = 0.3
+    """Clip of the actor's noise (``stddev_clip: 0.3``)."""
+    eval_every: Annotated[int, AT_LEAST_1] = 5000
+    """Updates between evaluations (``eval_every_frames: 10000`` steps = 5,000 updates)."""
+    eval_episodes: Annotated[int, AT_LEAST_1] = 10
+    """Episodes per evaluation (``num_eval_episodes: 10``)."""
+    log_every: Annotated[int, AT_LEAST_1] = 1000
+    """Updates between metric logs (``show_train_stats_every_frames: 2000`` steps)."""
+    checkpoint_every: Annotated[int, AT_LEAST_1] = 10_000
+    """Updates between checkpoints."""
+
+
+@dataclass(frozen=True)
+class PenaltyConfig:
+    """V-D4RL's offline DreamerV2: imagined rewards minus ``weight`` times the disagreement of an ensemble of
+    dynamics (prior) heads.
+
+    Values from github.com/conglu1997/v-d4rl ``offlinedv2``: its ``configs.yaml`` (``rssm.ensemble: 7``,
+    ``offline_model_train_steps: 25001``) and its README's DMC command (``--offline_penalty_type meandis
+    --offline_lmbd 10``). The rest of the agent is this project's DreamerV2 (``world_model``, ``actor_critic``) and
+    its schedule is offline DreamerV2's (``coworld.iterations`` x ``coworld.target_updates``).
+    """
+
+    ensemble: Annotated[int, Range(2)] = 7
+    """Dynamics heads ``deter -> prior logits`` whose disagreement is the penalty (``rssm.ensemble: 7``)."""
+    weight: Annotated[float, NON_NEGATIVE] = 10.0
+    """lambda: imagined reward ``r - lambda * disagreement`` (README command: ``--offline_lmbd 10``)."""
+    model_updates: Annotated[int, NON_NEGATIVE] = 25_000
+    """Updates at the start that train the world model (and heads) alone; after them the world model is frozen and
+    only the actor-critic learns (``offline_model_train_steps: 25001``, then ``agent_train``)."""
+
+
+@dataclass(frozen=True)
 class Config:
     """Everything a run needs besides its task names and paths."""
 
@@ -318,6 +389,8 @@ class Config:
     """'auto' (bf16 autocast on CUDA, fp32 on CPU), 'bf16' or 'fp32'."""
     compile: bool = False
     """torch.compile the world model and actor-critic networks (meant for CUDA; works on CPU too)."""
+    drqbc: DrqBcConfig = field(default_factory=DrqBcConfig)
+    penalty: PenaltyConfig = field(default_factory=PenaltyConfig)
 
 
 PRESETS: dict[str, dict[str, Any]] = {
@@ -388,6 +461,19 @@ PRESETS: dict[str, dict[str, Any]] = {
         "coworld.iterations": 2,
         "coworld.target_updates": 20,
         "coworld.source_updates": 20,
+        "drqbc.num_filters": 8,
+        "drqbc.num_layers": 2,
+        "drqbc.feature_dim": 16,
+        "drqbc.hidden": 64,
+        "drqbc.batch_size": 32,
+        "drqbc.updates": 200,
+        "drqbc.std_updates": 100,
+        "drqbc.eval_every": 100,
+        "drqbc.eval_episodes": 2,
+        "drqbc.log_every": 50,
+        "drqbc.checkpoint_every": 100,
+        "penalty.ensemble": 3,
+        "penalty.model_updates": 10,
         "curl.num_filters": 8,
         "curl.num_layers": 2,
         "curl.feature_dim": 16,

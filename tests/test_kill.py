@@ -72,6 +72,13 @@ TRAIN = (
     "train --target toy_reach_shifted --preset tiny --no-progress --device cpu --threads 1 --set train.eval_episodes=1"
 ).split()
 CURL = "--algo curl --set curl.updates=150 --set curl.checkpoint_every=10 --set curl.eval_every=1000".split()
+DRQ_BC = "--algo drq-bc --set drqbc.updates=150 --set drqbc.checkpoint_every=10 --set drqbc.eval_every=1000".split()
+DREAMER_SCHEDULE = "--set coworld.iterations=10 --set coworld.target_updates=10".split()
+PENALTY = ["--algo", "dreamerv2-penalty", *DREAMER_SCHEDULE, "--set", "penalty.model_updates=15"]
+FINETUNE = ["--algo", "dreamerv2-finetune", "--source", "toy_reach", "--set", "train.prefill=100"]
+FINETUNE += ["--set", "coworld.pretrain_steps=200", *DREAMER_SCHEDULE]
+OFFLINE = {"curl": CURL, "drq-bc": DRQ_BC, "dreamerv2-penalty": PENALTY, "dreamerv2-finetune": FINETUNE}
+"""Algorithms whose checkpoint counts its updates at the top level (the offline loop's)."""
 COWORLD = (
     "--algo coworld --source toy_reach --set train.prefill=100 --set coworld.pretrain_steps=200"
     " --set coworld.iterations=3 --set coworld.target_updates=10 --set coworld.source_updates=10"
@@ -82,6 +89,9 @@ COWORLD = (
     ("algo", "kills"),
     [
         pytest.param("curl", 2, id="curl-2-kills"),
+        pytest.param("drq-bc", 2, id="drq-bc-2-kills"),
+        pytest.param("dreamerv2-penalty", 3, id="dreamerv2-penalty-3-kills", marks=pytest.mark.slow),
+        pytest.param("dreamerv2-finetune", 3, id="dreamerv2-finetune-3-kills", marks=pytest.mark.slow),
         pytest.param("coworld", 5, id="coworld-5-kills", marks=pytest.mark.slow),
     ],
 )
@@ -91,7 +101,7 @@ def test_train_killed_at_random_moments(
     dataset = toy_dataset_writer(tmp_path / "toy.h5", "toy_reach_shifted")
     run = tmp_path / "run"
     checkpoint, replay = run / "checkpoint.pt", run / "source_replay.h5"
-    args = [*TRAIN, *(CURL if algo == "curl" else COWORLD), "--dataset", str(dataset), "--logdir", str(run)]
+    args = [*TRAIN, *OFFLINE.get(algo, COWORLD), "--dataset", str(dataset), "--logdir", str(run)]
     rng = np.random.default_rng(kills)
     progress, experience = -1, []
     for _ in range(kills):
@@ -102,7 +112,7 @@ def test_train_killed_at_random_moments(
         time.sleep(float(rng.uniform(0.0, 2.0)))
         processes.kill(proc)
         state = load_checkpoint(checkpoint)  # whole: it loads
-        done = state["updates"] if algo == "curl" else state["agent"]["updates"]
+        done = state["updates"] if algo in OFFLINE else state["agent"]["updates"]
         assert done >= progress and done % 10 == 0  # checkpoint boundaries only, never going back
         progress = done
         if algo == "coworld":  # the source agent's experience, a dataset too
@@ -114,8 +124,11 @@ def test_train_killed_at_random_moments(
     done = processes.run_cli(*args)
     assert done.returncode == 0, done.stderr[-3000:]
     state = load_checkpoint(checkpoint)
-    if algo == "curl":
-        assert state["updates"] == 150
+    if algo in OFFLINE:
+        assert state["updates"] == (150 if algo in ("curl", "drq-bc") else 100)
+        # the agent resumed with the loop, not from zero (the fine-tuned one also counts its source updates)
+        source = load_checkpoint(run / "source" / "checkpoint.pt")["updates"] if algo == "dreamerv2-finetune" else 0
+        assert state["agent"]["updates"] == state["updates"] + source
     else:
         assert state["progress"]["iteration"] == 3 and state["agent"]["updates"] == 30
         assert helpers.episode_digests(replay)[: len(experience)] == experience

@@ -61,7 +61,7 @@ from coworld.losses.curl import (
 )
 from coworld.models.curl import Actor, BilinearSimilarity, Critic, center_crop, random_crop, squashed_gaussian_sample
 
-__all__ = ["Curl", "make_sampler"]
+__all__ = ["Curl", "load_networks", "make_sampler", "polyak", "stack_frames"]
 
 PolicyState = np.ndarray | None
 """Frame stack of each environment, ``uint8 (N, k*C, H, W)``; None at the start of a run."""
@@ -75,7 +75,70 @@ def make_sampler(dataset: Dataset, config: Config, seed: int) -> TransitionSampl
     )
 
 
-def _polyak(target: nn.Module, source: nn.Module, tau: float) -> None:
+def stack_frames(
+    obs: np.ndarray,
+    state: np.ndarray | None,
+    *,
+    frame_stack: int,
+    image_shape: tuple[int, ...],
+    is_first: np.ndarray | None = None,
+) -> np.ndarray:
+    """The frame stacks of ``N`` environments after their newest frames (what the pixel baselines act on).
+
+    Args:
+        obs: ``uint8 (N, H, W, C)`` the newest frame of each environment.
+        state: the stacks returned by the previous call, or None at the start (every row starts).
+        frame_stack: ``k``.
+        image_shape: ``(H, W, C)`` the agent takes.
+        is_first: ``(N,) bool``: rows whose episode starts at this frame; their stack is reset to ``k`` copies of it.
+
+    Returns:
+        ``uint8 (N, k*C, H, W)``, oldest frame first (a row starts as ``k`` copies of its first frame).
+    """
+    obs = np.asarray(obs)
+    if obs.ndim != 4 or obs.shape[1:] != tuple(image_shape):
+        raise ValueError(f"obs must be uint8 (N, H, W, C) with (H, W, C) = {tuple(image_shape)}, got {obs.shape}")
+    N = obs.shape[0]
+    frame = obs.transpose(0, 3, 1, 2)  # (N, C, H, W)
+    fresh = np.tile(frame, (1, frame_stack, 1, 1))  # (N, k*C, H, W)
+    if state is None:
+        stack = fresh
+    else:
+        if state.shape != fresh.shape:
+            raise ValueError(f"state must be the stack returned for these {N} envs, {fresh.shape}; got {state.shape}")
+        stack = np.concatenate([state[:, frame.shape[1] :], frame], axis=1)
+        if is_first is not None:
+            restart = np.asarray(is_first, dtype=bool).reshape(N)
+            stack[restart] = fresh[restart]
+    return np.ascontiguousarray(stack, dtype=np.uint8)
+
+
+def load_networks(
+    state: Mapping[str, Any],
+    *,
+    kind: str,
+    action_size: int,
+    networks: Mapping[str, nn.Module],
+    optimizers: Mapping[str, torch.optim.Optimizer],
+) -> None:
+    """Load a pixel baseline's checkpoint ``state`` into its networks and optimisers (by name); a checkpoint of
+    another agent, action size or network size is refused with one line (CheckpointError)."""
+    if state.get("kind") != kind or state.get("action_size") != action_size:
+        raise CheckpointError(
+            f"checkpoint is of a {state.get('kind')} agent with {state.get('action_size')} actions, this run is"
+            f" {kind} with {action_size}; use the run folder the checkpoint came from"
+        )
+    try:
+        for name, network in networks.items():
+            network.load_state_dict(state[name])
+    except RuntimeError as err:
+        first = str(err).strip().splitlines()[0]
+        raise CheckpointError(f"checkpoint does not fit this config's networks ({first[:160]})") from None
+    for name, optimizer in optimizers.items():
+        optimizer.load_state_dict(state["optimizers"][name])
+
+
+def polyak(target: nn.Module, source: nn.Module, tau: float) -> None:
     """``target <- tau * source + (1 - tau) * target``, parameter by parameter."""
     with torch.no_grad():
         for t, s in zip(target.parameters(), source.parameters(), strict=True):
@@ -195,9 +258,9 @@ class Curl:
             self._actor_metrics = self._update_actor_and_alpha(obs)
         metrics.update(self._actor_metrics)
         if self.updates % cfg.target_update_every == 0:
-            _polyak(self.critic_target.q1, self.critic.q1, cfg.critic_tau)
-            _polyak(self.critic_target.q2, self.critic.q2, cfg.critic_tau)
-            _polyak(self.critic_target.encoder, self.critic.encoder, cfg.encoder_tau)
+            polyak(self.critic_target.q1, self.critic.q1, cfg.critic_tau)
+            polyak(self.critic_target.q2, self.critic.q2, cfg.critic_tau)
+            polyak(self.critic_target.encoder, self.critic.encoder, cfg.encoder_tau)
         metrics.update(self._update_contrastive(obs, positive))
         self.updates += 1
         return metrics
@@ -309,25 +372,9 @@ class Curl:
         """
         if mode not in ("eval", "train"):
             raise ValueError(f"mode must be 'eval' or 'train', got {mode!r}")
-        obs = np.asarray(obs)
-        if obs.ndim != 4 or obs.shape[1:] != self.image_shape:
-            raise ValueError(f"obs must be uint8 (N, H, W, C) with (H, W, C) = {self.image_shape}, got {obs.shape}")
-        N = obs.shape[0]
-        frame = obs.transpose(0, 3, 1, 2)  # (N, C, H, W)
-        k = self.cfg.frame_stack
-        fresh = np.tile(frame, (1, k, 1, 1))  # (N, k*C, H, W)
-        if state is None:
-            stack = fresh
-        else:
-            if state.shape != fresh.shape:
-                raise ValueError(
-                    f"state must be the stack returned for these {N} envs, {fresh.shape}; got {state.shape}"
-                )
-            stack = np.concatenate([state[:, frame.shape[1] :], frame], axis=1)
-            if is_first is not None:
-                restart = np.asarray(is_first, dtype=bool).reshape(N)
-                stack[restart] = fresh[restart]
-        stack = np.ascontiguousarray(stack, dtype=np.uint8)
+        stack = stack_frames(
+            obs, state, frame_stack=self.cfg.frame_stack, image_shape=self.image_shape, is_first=is_first
+        )
         with torch.no_grad():
             images = center_crop(torch.as_tensor(stack, device=self.device), pad=self.cfg.pad, crop=self.cfg.crop)
             conv = self.critic.encoder.trunk(images)
@@ -370,23 +417,10 @@ class Curl:
 
     def load_state_dict(self, state: Mapping[str, Any]) -> None:
         """Restore what :meth:`state_dict` saved; a checkpoint of the other variant or action size is refused."""
-        kind = "curl-cql" if self.cql else "curl"
-        if state.get("kind") != kind or state.get("action_size") != self.action_size:
-            raise CheckpointError(
-                f"checkpoint is of a {state.get('kind')} agent with {state.get('action_size')} actions, this run is"
-                f" {kind} with {self.action_size}; use the run folder the checkpoint came from"
-            )
-        try:
-            self.critic.load_state_dict(state["critic"])
-            self.critic_target.load_state_dict(state["critic_target"])
-            self.actor.load_state_dict(state["actor"])
-            self.similarity.load_state_dict(state["similarity"])
-        except RuntimeError as err:
-            first = str(err).strip().splitlines()[0]
-            raise CheckpointError(f"checkpoint does not fit this config's networks ({first[:160]})") from None
+        networks = {"critic": self.critic, "critic_target": self.critic_target, "actor": self.actor}
+        load_networks(state, kind="curl-cql" if self.cql else "curl", action_size=self.action_size,
+                      networks={**networks, "similarity": self.similarity}, optimizers=self.optimizers)  # fmt: skip
         with torch.no_grad():
             self.log_alpha.copy_(state["log_alpha"])
-        for name, opt in self.optimizers.items():
-            opt.load_state_dict(state["optimizers"][name])
         self.updates = int(state["updates"])
         self._actor_metrics = {k: float(v) for k, v in state.get("actor_metrics", {}).items()}

@@ -26,7 +26,7 @@ from coworld.models.rssm import State
 from coworld.models.world_model import WorldModel
 from coworld.training.run import resolve_device
 
-__all__ = ["DreamerV2", "ExtraWorldModelLoss", "PolicyState", "resolve_device", "resolve_precision"]
+__all__ = ["DreamerV2", "ExtraWorldModelLoss", "ImaginedReward", "PolicyState", "resolve_device", "resolve_precision"]
 
 PolicyState = tuple[State, Tensor]
 """What :meth:`DreamerV2.policy` carries between steps: the posterior (batch ``(N,)``) and the last action
@@ -36,6 +36,11 @@ ExtraWorldModelLoss = Callable[[dict[str, Tensor], dict[str, Any]], dict[str, Te
 """``(batch, aux) -> {name: weighted scalar loss}``: extra world-model terms (e.g. CoWorld's Eq. 3 alignment).
 ``aux`` is :meth:`WorldModel.loss`'s aux dict; each returned term is added to the loss and logged as
 ``wm/<name>``."""
+
+ImaginedReward = Callable[[dict[str, Any]], Tensor]
+"""``traj -> (H+1, N)``: the reward the actor-critic learns from on an imagined trajectory (see
+:meth:`ActorCritic.imagine`), in place of the reward head's ``traj['reward']`` (V-D4RL's offline DreamerV2 passes
+its penalised reward this way)."""
 
 _OPTIM_KEYS = ("wm_opt", "actor_opt", "critic_opt")
 
@@ -202,13 +207,15 @@ class DreamerV2:
         value_regulariser: ValueRegulariser | None = None,
         *,
         is_terminal: Tensor | np.ndarray | None = None,
+        imagined_reward: ImaginedReward | None = None,
     ) -> dict[str, float]:
         """One actor and one critic step on trajectories imagined from every posterior state in ``post``.
 
         ``post``: states with batch ``(B, T)`` (from :meth:`train_world_model`). ``value_regulariser``: extra
         critic loss, see :meth:`ActorCritic.losses`; give it parameters that need no gradient (or wrap its
         network in :func:`coworld.models.networks.frozen_parameters`). ``is_terminal (B, T)``: true
-        continuation of the start states. The slow critic is refreshed after the optimiser steps, per
+        continuation of the start states. ``imagined_reward``: replaces the reward head's reward of the imagined
+        states (see :data:`ImaginedReward`). The slow critic is refreshed after the optimiser steps, per
         ``slow_target_every`` (DreamerV2's order: the first update copies the stepped critic whole).
         """
         ac = self.actor_critic
@@ -216,6 +223,8 @@ class DreamerV2:
         terminal = None if is_terminal is None else torch.as_tensor(is_terminal, device=self.device).reshape(-1)
         with frozen_parameters(self.world_model), self._autocast():
             traj = ac.imagine(self.world_model, start, is_terminal=terminal)
+            if imagined_reward is not None:
+                traj["reward"] = imagined_reward(traj)
             terms, metrics = ac.losses(self.world_model, traj, value_regulariser)
         self.actor_opt.zero_grad(set_to_none=True)
         self.critic_opt.zero_grad(set_to_none=True)

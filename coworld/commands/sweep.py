@@ -9,6 +9,7 @@ import click
 from coworld import interrupt
 from coworld.commands.options import MAX_THREADS, Number, capped_jobs, count_type, input_path, output_folder
 from coworld.sweep.grid import MAX_SEEDS, TABLES
+from coworld.training.train import ALGOS
 
 
 @click.command()
@@ -21,7 +22,7 @@ from coworld.sweep.grid import MAX_SEEDS, TABLES
 )
 @click.option("--grid", "grid_file", type=input_path(dir_okay=False), help="A TOML grid file (see the README).")
 @click.option("--pairs", help="SOURCE:TARGET[,SOURCE:TARGET...], e.g. walker_walk:walker_uphill.")
-@click.option("--algos", help="Comma-separated algorithms: coworld,dreamerv2,curl,curl-cql.")
+@click.option("--algos", help=f"Comma-separated algorithms: {','.join(ALGOS)}.")
 @click.option("--seeds", type=count_type(1, MAX_SEEDS), help="Seeds 0..N-1 of every run.")
 @click.option("--preset", help="Config preset of every run: tiny or paper.")
 @click.option(

@@ -9,11 +9,13 @@ import click
 from coworld.commands.options import SEED, count_type, output_folder
 from coworld.envs.registry import PAIRS, TASKS, task_spec
 from coworld.errors import ConfigError
+from coworld.training.train import ALGOS, NEEDS_SOURCE
 
 
 @click.command("tasks")
 def tasks() -> None:
-    """List every task (with its reference return and medium level) and the source -> target pairs."""
+    """List every task (with its reference return and medium level), the source -> target pairs, and which
+    algorithms need a source task."""
     header = ("task", "family", "actions", "episode", "repeat", "random", "reference", "medium", "modification")
     rows = [
         (
@@ -47,6 +49,10 @@ def tasks() -> None:
     width = max(len(source) for source, _ in PAIRS)
     for source, target in PAIRS:
         click.echo(f"  {source.ljust(width)} -> {target}")
+    offline = [algo for algo in ALGOS if algo not in NEEDS_SOURCE]
+    click.echo("\nalgorithms (`coworld train --algo`):")
+    click.echo(f"  need --source (they also learn online in the source task): {', '.join(NEEDS_SOURCE)}")
+    click.echo(f"  learn from the target dataset alone: {', '.join(offline)}")
 
 
 def _number(value: float | None) -> str:

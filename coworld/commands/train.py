@@ -1,4 +1,5 @@
-"""``coworld train``: CoWorld, offline DreamerV2, CURL or CURL+CQL on a target dataset."""
+"""``coworld train``: CoWorld or a baseline (offline DreamerV2 and its variants, CURL, CURL+CQL, DrQ+BC) on a
+target dataset."""
 
 from __future__ import annotations
 
@@ -9,14 +10,18 @@ import click
 from coworld import interrupt
 from coworld.commands.options import SEED, input_path, output_folder, threads_option
 from coworld.errors import StorageError
-from coworld.training.train import ALGOS, MODEL_FREE
+from coworld.training.train import ALGOS, NEEDS_SOURCE
 
 RESUME = "rerun the same command to resume"
 
 
 @click.command()
 @click.option("--target", required=True, help="Offline target task (its dataset is the training data).")
-@click.option("--source", default=None, help="Online source task (CoWorld only), e.g. walker_walk.")
+@click.option(
+    "--source",
+    default=None,
+    help=f"Online source task ({' and '.join(NEEDS_SOURCE)} only; the others ignore it), e.g. walker_walk.",
+)
 @click.option(
     "--dataset",
     type=input_path(dir_okay=False),
@@ -44,7 +49,7 @@ RESUME = "rerun the same command to resume"
 @click.option("--progress/--no-progress", default=True, help="Progress bars.")
 @interrupt.at_safe_points
 def train(target, source, dataset, algo, preset, logdir, seed, device, overrides, progress) -> None:
-    """Train on a fixed target dataset (CoWorld also learns online in --source).
+    """Train on a fixed target dataset (CoWorld and dreamerv2-finetune also learn online in --source).
 
     Rerunning the same command on the same --logdir resumes from the last checkpoint (also after Ctrl-C, SIGTERM,
     a kill or a full disk).
@@ -52,7 +57,7 @@ def train(target, source, dataset, algo, preset, logdir, seed, device, overrides
     from coworld.storage import check_writable
     from coworld.training.train import check_job, run_job
 
-    if source is not None and algo != "coworld":
+    if source is not None and algo not in NEEDS_SOURCE:
         click.echo(f"note: --source is not used by {algo}: it learns from the target dataset alone", err=True)
         source = None
     job = check_job(
@@ -69,7 +74,7 @@ def train(target, source, dataset, algo, preset, logdir, seed, device, overrides
     check_writable(job.logdir, "--logdir")
     for warning in job.warnings:
         click.echo(f"warning: {warning}", err=True)
-    kind = "offline on the dataset alone" if algo in MODEL_FREE or algo == "dreamerv2" else f"with source {source}"
+    kind = f"with source {source}" if algo in NEEDS_SOURCE else "offline on the dataset alone"
     click.echo(f"train {algo} on {job.dataset} ({target}, {kind}); run folder {job.logdir}")
     if job.resume and (job.logdir / "checkpoint.pt").exists():
         click.echo(f"resuming from {job.logdir / 'checkpoint.pt'}")
@@ -89,7 +94,7 @@ def _kept(logdir: Path) -> str:
 
     path = logdir / "checkpoint.pt"
     if not path.exists():
-        if (logdir / "source" / "checkpoint.pt").exists():  # CoWorld, pretraining its source agent
+        if (logdir / "source" / "checkpoint.pt").exists():  # pretraining its source agent (CoWorld, fine-tuning)
             return f"{logdir} keeps the source agent's pretraining checkpoint and experience"
         return f"{logdir} holds no checkpoint yet"
     state = torch.load(path, map_location="cpu", weights_only=True, mmap=True)

@@ -129,10 +129,14 @@ def learning_curve(run_dir: Path, algo: str, records: list[dict[str, Any]] | Non
 
 
 def _updates(records: list[dict[str, Any]], algo: str) -> int | None:
+    """The last target update logged (a source phase's records, counted in source steps, are left out)."""
     steps = [
         int(r["step"])
         for r in records
-        if algo != "coworld" or any(key.startswith("target/") for key in r) or target_eval_return(r, algo) is not None
+        if not str(r.get("unit", "")).startswith("source_")
+        and (
+            algo != "coworld" or any(key.startswith("target/") for key in r) or target_eval_return(r, algo) is not None
+        )
     ]
     return max(steps) if steps else None
 

@@ -20,8 +20,8 @@ import numpy as np
 from coworld.errors import CoworldError
 from coworld.report.results import RunResult
 
-ALGO_ORDER = ("curl", "curl-cql", "dreamerv2", "coworld")
-"""Columns in the paper's order; other algorithms follow."""
+ALGO_ORDER = ("curl", "curl-cql", "drq-bc", "dreamerv2", "dreamerv2-penalty", "dreamerv2-finetune", "coworld")
+"""Columns in the paper's order (model-free, then model-based, CoWorld last); other algorithms follow."""
 
 
 def require_scipy() -> Any:

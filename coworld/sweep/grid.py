@@ -28,7 +28,7 @@ from typing import Any
 from coworld import envs
 from coworld.config import make_config
 from coworld.errors import ConfigError, CoworldError
-from coworld.training.train import ALGOS
+from coworld.training.train import ALGOS, NEEDS_SOURCE
 
 COLLECT_POLICIES = ("dreamerv2", "random")
 QUALITIES = ("medium-replay", "medium", "expert")
@@ -96,7 +96,7 @@ class Run:
 
     algo: str
     source: str | None
-    """CoWorld's online source task; None for the baselines."""
+    """The online source task of CoWorld and the fine-tuned DreamerV2; None for the other baselines."""
     target: str
     seed: int
     variant: str = ""
@@ -174,7 +174,7 @@ class SweepSpec:
                 variants = [name for name, _ in self.variants] if algo == "coworld" else [""]
                 for variant in variants:
                     for seed in self.seeds:
-                        run = Run(algo, source if algo == "coworld" else None, target, seed, variant)
+                        run = Run(algo, source if algo in NEEDS_SOURCE else None, target, seed, variant)
                         if run not in seen:
                             seen.add(run)
                             runs.append(run)
@@ -246,12 +246,18 @@ TOY_OVERRIDES = (
     "curl.eval_every=600",
     "curl.checkpoint_every=600",
     "curl.eval_episodes=5",
+    "drqbc.updates=3000",
+    "drqbc.std_updates=1500",
+    "drqbc.eval_every=600",
+    "drqbc.checkpoint_every=600",
+    "drqbc.eval_episodes=5",
+    "penalty.model_updates=750",
 )
 """The toy schedule on the ``tiny`` preset (see :func:`toy_table`)."""
 
 
 def toy_table() -> SweepSpec:
-    """The CPU-sized table: toy_reach -> toy_reach_shifted, the four algorithms, 3 seeds, ``tiny`` preset.
+    """The CPU-sized table: toy_reach -> toy_reach_shifted, every algorithm, 3 seeds, ``tiny`` preset.
 
     Design. The target dataset is deliberately too poor to learn from alone: 20 episodes (1,000 steps) of uniform
     random actions in toy_reach_shifted, where the constant drift towards -x carries an aimless dot away from the
@@ -263,10 +269,13 @@ def toy_table() -> SweepSpec:
     critic (Eq. 6) carry the source's values over.
 
     Size. Every algorithm gets the same target budget: 5 iterations of 300 target updates (1,500 updates), the
-    offline DreamerV2 the same 1,500 updates, CURL and CURL+CQL 3,000 of their cheaper updates. CoWorld's source
-    pretrains for 2,000 environment steps and makes 100 updates per iteration. Each run ends with a 10-episode
-    evaluation. Measured on 2 shared CPU cores (README): one seed of all four algorithms takes about 16
-    CPU-minutes, CoWorld's run 7 of them; the 3 seeds fit in half an hour with ``--jobs 2``.
+    offline DreamerV2 and its two variants the same 1,500 updates (V-D4RL's penalised one spends the first 750 on
+    its world model, the fine-tuned one first pretrains in the source as CoWorld's source does), CURL, CURL+CQL
+    and DrQ+BC 3,000 of their cheaper updates. CoWorld's source pretrains for 2,000 environment steps and makes 100
+    updates per iteration. Each run ends with a 10-episode
+    evaluation. Measured on 2 shared CPU cores (README), before DrQ+BC and the two DreamerV2 variants joined:
+    one seed of the four others took about 16 CPU-minutes, CoWorld's run 7 of them; their 3 seeds fit in half an
+    hour with ``--jobs 2``.
     """
     return SweepSpec(
         pairs=(("toy_reach", "toy_reach_shifted"),),

@@ -1,8 +1,9 @@
-"""Offline baselines on the target dataset alone: offline DreamerV2 and CURL / CURL+CQL.
+"""Offline baselines on the target dataset: offline DreamerV2 and its variants, CURL / CURL+CQL and DrQ+BC.
 
-Offline DreamerV2 gets the same number of target updates as CoWorld's target agent
-(``coworld.iterations * coworld.target_updates``), evaluated and checkpointed once per CoWorld iteration's
-worth of updates, so the two are compared at equal cost.
+Offline DreamerV2, V-D4RL's penalised DreamerV2 and the fine-tuned DreamerV2 get the same number of target updates
+as CoWorld's target agent (``coworld.iterations * coworld.target_updates``), evaluated and checkpointed once per
+CoWorld iteration's worth of updates, so they are compared at equal cost. The fine-tuned DreamerV2 first learns
+online in the source task (:func:`coworld.agents.dreamerv2_finetune.pretrain_on_source`).
 """
 
 from __future__ import annotations
@@ -16,12 +17,12 @@ from coworld.data import open_dataset
 from coworld.envs import task_spec
 from coworld.training.logger import Logger
 from coworld.training.offline import OfflineSchedule, OfflineTrainer
-from coworld.training.train import CHECKPOINT_KINDS, TrainJob
+from coworld.training.train import CHECKPOINT_KINDS, MODEL_FREE, TrainJob
 
 
 def schedule_for(job: TrainJob) -> OfflineSchedule:
     config = job.config
-    if job.algo == "dreamerv2":
+    if job.algo not in MODEL_FREE:
         per_iteration = config.coworld.target_updates
         return OfflineSchedule(
             updates=config.coworld.iterations * per_iteration,
@@ -30,7 +31,7 @@ def schedule_for(job: TrainJob) -> OfflineSchedule:
             eval_episodes=config.train.eval_episodes,
             checkpoint_every=per_iteration,
         )
-    c = config.curl
+    c = config.drqbc if job.algo == "drq-bc" else config.curl
     return OfflineSchedule(
         updates=c.updates,
         log_every=c.log_every,
@@ -45,12 +46,19 @@ def train_offline(job: TrainJob, *, device: torch.device, resumed: bool, progres
     action_size = task_spec(job.target).action_size
     agent = make_agent(job.algo, config=config, action_size=action_size, device=device)
     dataset = open_dataset(job.dataset)
-    if job.algo == "dreamerv2":
+    if job.algo not in MODEL_FREE:
 
         def make_sampler(seed: int):
             return iter(dataset.sampler(config.train.batch_size, config.train.seq_len, seed=seed))
 
         discount = config.actor_critic.discount
+    elif job.algo == "drq-bc":
+        from coworld.agents.drq_bc import make_sampler as drq_sampler
+
+        def make_sampler(seed: int):
+            return iter(drq_sampler(dataset, config, seed))
+
+        discount = config.drqbc.discount
     else:
         from coworld.agents.curl import make_sampler as curl_sampler
 
@@ -71,8 +79,11 @@ def train_offline(job: TrainJob, *, device: torch.device, resumed: bool, progres
             discount=discount,
             workers=config.train.envs,
         )
-        if resumed:
-            trainer.restore()
+        restored = resumed and trainer.restore()
+        if job.source is not None and not restored:
+            from coworld.agents.dreamerv2_finetune import pretrain_on_source
+
+            pretrain_on_source(agent, job, logger=logger, progress=progress)
         result = trainer.run(progress=progress)
     dataset.close()
     return {"logdir": str(job.logdir), "updates": result.updates, "last_eval_return": result.last_eval_return}

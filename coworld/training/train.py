@@ -18,19 +18,25 @@ from coworld.config import Config, make_config
 from coworld.data.collect import default_dataset_path
 from coworld.errors import CoworldError, DatasetError
 
-ALGOS = ("coworld", "dreamerv2", "curl", "curl-cql")
-MODEL_FREE = ("curl", "curl-cql")
+ALGOS = ("coworld", "dreamerv2", "curl", "curl-cql", "drq-bc", "dreamerv2-penalty", "dreamerv2-finetune")
+MODEL_FREE = ("curl", "curl-cql", "drq-bc")
+NEEDS_SOURCE = ("coworld", "dreamerv2-finetune")
+"""Algorithms that also learn online in a source task (``--source``); the others learn from the target dataset
+alone."""
 
 CHECKPOINT_KINDS = {
     "coworld": "coworld",
     "dreamerv2": "dreamerv2-offline",
     "curl": "curl",
     "curl-cql": "curl-cql",
+    "drq-bc": "drq-bc",
+    "dreamerv2-penalty": "dreamerv2-penalty",
+    "dreamerv2-finetune": "dreamerv2-finetune",
 }
 
 
 def default_logdir(algo: str, source: str | None, target: str, seed: int) -> Path:
-    pair = f"{source}-{target}" if source and algo == "coworld" else target
+    pair = f"{source}-{target}" if source and algo in NEEDS_SOURCE else target
     return Path("runs") / f"{algo}-{pair}-s{seed}"
 
 
@@ -79,10 +85,10 @@ def check_job(
         raise CoworldError(f"unknown algorithm {algo!r}; choose one of: {', '.join(ALGOS)}")
     target_spec = envs.task_spec(target)
     warnings: list[str] = []
-    if algo == "coworld":
+    if algo in NEEDS_SOURCE:
         if source is None:
             paired = envs.paired_source(target) or "a task of the target's body (see `coworld tasks`)"
-            raise CoworldError(f"coworld needs an online source domain: pass --source, e.g. --source {paired}")
+            raise CoworldError(f"{algo} needs an online source domain: pass --source, e.g. --source {paired}")
         source_spec = envs.task_spec(source)
         if source_spec.action_size != target_spec.action_size:
             raise CoworldError(
@@ -109,10 +115,22 @@ def check_job(
             " episodes committed so far; finish it with `coworld collect ... --resume` for the whole dataset"
         )
     run_dir = Path(logdir) if logdir is not None else default_logdir(algo, source, target, config.seed)
-    job = TrainJob(algo, source if algo == "coworld" else None, target, path, run_dir, config, preset)
+    check_schedule(algo, config)
+    job = TrainJob(algo, source if algo in NEEDS_SOURCE else None, target, path, run_dir, config, preset)
     resume = check_run_dir(run_dir, config, job.info())
     warnings += preset_warnings(preset, config.device)
     return dataclasses.replace(job, resume=resume, warnings=tuple(warnings))
+
+
+def check_schedule(algo: str, config: Config) -> None:
+    """The rules between config keys that only one algorithm reads (one line on what to change)."""
+    if algo == "dreamerv2-penalty":
+        total = config.coworld.iterations * config.coworld.target_updates
+        if config.penalty.model_updates >= total:
+            raise CoworldError(
+                f"penalty.model_updates={config.penalty.model_updates} leaves none of the run's {total} updates"
+                " (coworld.iterations x coworld.target_updates) to the actor-critic; lower it or lengthen the run"
+            )
 
 
 IMAGE_SHAPE = (64, 64, 3)

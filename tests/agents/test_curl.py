@@ -5,7 +5,6 @@ from __future__ import annotations
 import io
 import math
 import types
-from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -14,9 +13,8 @@ import torch
 
 from coworld.agents.curl import Curl, make_sampler
 from coworld.config import Config, make_config
-from coworld.data import DatasetWriter, open_dataset, reader
+from coworld.data import open_dataset, reader
 from coworld.data.transitions import TransitionSampler
-from coworld.envs import make
 from coworld.errors import CheckpointError, DatasetError
 from coworld.models.curl import center_crop, random_crop, squashed_gaussian_log_prob, squashed_gaussian_sample
 
@@ -324,56 +322,10 @@ def test_load_state_dict_refuses_the_other_variant() -> None:
 # Offline learning on toy_reach, through the dataset format
 # --------------------------------------------------------------------------------------------------------------
 
-Policy = Callable[[np.ndarray, object, np.ndarray], tuple[np.ndarray, object]]
 
-
-def _write_expert_dataset(path: Path, *, episodes: int, noise: float, seed: int) -> float:
-    """Scripted toy_reach data (the env's head-for-the-goal action plus Gaussian noise); returns the mean return."""
-    env = make("toy_reach", seed=seed)
-    rng = np.random.default_rng(seed)
-    returns = []
-    with DatasetWriter(
-        path,
-        task="toy_reach",
-        env_config={"task": "toy_reach"},
-        quality="expert",
-        collector={"algorithm": "scripted expert", "action_noise": noise, "seed": seed},
-        action_size=2,
-    ) as writer:
-        for _ in range(episodes):
-            obs, _ = env.reset()
-            frames, actions, rewards = [obs], [], []
-            done = False
-            while not done:
-                action = env.unwrapped.expert_action() + noise * rng.standard_normal(2)
-                action = np.clip(action, -1, 1).astype(np.float32)
-                obs, reward, terminated, truncated, _ = env.step(action)
-                frames.append(obs), actions.append(action), rewards.append(reward)
-                done = terminated or truncated
-            writer.add_episode(np.stack(frames), np.stack(actions), np.array(rewards), terminated=False)
-            returns.append(sum(rewards))
-        writer.close(complete=True)
-    return float(np.mean(returns))
-
-
-def _mean_return(policy: Policy, *, episodes: int, seed: int) -> float:
-    """Mean return of ``policy`` on toy_reach, driven the way the evaluation loop drives every agent."""
-    env = make("toy_reach", seed=seed)
-    returns = []
-    for _ in range(episodes):
-        obs, _ = env.reset()
-        state, first, total, done = None, True, 0.0, False
-        while not done:
-            action, state = policy(obs[None], state, np.array([first]))
-            obs, reward, terminated, truncated, _ = env.step(action[0])
-            total, first, done = total + reward, False, terminated or truncated
-        returns.append(total)
-    return float(np.mean(returns))
-
-
-def test_make_sampler_reads_a_dataset_file(tmp_path: Path) -> None:
+def test_make_sampler_reads_a_dataset_file(tmp_path: Path, toy_expert: types.ModuleType) -> None:
     path = tmp_path / "toy.h5"
-    _write_expert_dataset(path, episodes=2, noise=0.3, seed=0)
+    toy_expert.write_dataset(path, episodes=2, noise=0.3, seed=0)
     config = _tiny(batch_size=16)
     with open_dataset(path) as dataset:
         sampler = make_sampler(dataset, config, seed=5)
@@ -392,9 +344,11 @@ def test_make_sampler_reads_a_dataset_file(tmp_path: Path) -> None:
     assert np.all(batch["not_done"] == 1.0)  # toy_reach episodes end by time limit only
 
 
-def test_make_sampler_memory_check_and_rebuilding(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_make_sampler_memory_check_and_rebuilding(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, toy_expert: types.ModuleType
+) -> None:
     path = tmp_path / "toy.h5"
-    _write_expert_dataset(path, episodes=2, noise=0.3, seed=0)
+    toy_expert.write_dataset(path, episodes=2, noise=0.3, seed=0)
     config = _tiny(batch_size=4)
     no_memory = types.SimpleNamespace(available=0)
     with open_dataset(path) as dataset, monkeypatch.context() as patch:
@@ -410,10 +364,10 @@ def test_make_sampler_memory_check_and_rebuilding(tmp_path: Path, monkeypatch: p
     assert all(np.array_equal(first[key], again[key]) for key in first)
 
 
-def test_curl_cql_learns_toy_reach_offline(tmp_path: Path) -> None:
+def test_curl_cql_learns_toy_reach_offline(tmp_path: Path, toy_expert: types.ModuleType) -> None:
     """Tiny CURL+CQL, 400 updates on 30 noisy-expert episodes, beats a uniform random policy by a wide margin."""
     path = tmp_path / "toy_reach-expert.h5"
-    data_return = _write_expert_dataset(path, episodes=30, noise=0.3, seed=0)
+    data_return = toy_expert.write_dataset(path, episodes=30, noise=0.3, seed=0)
     config = make_config("tiny")
     with open_dataset(path) as dataset:
         sampler = make_sampler(dataset, config, seed=0)
@@ -431,8 +385,8 @@ def test_curl_cql_learns_toy_reach_offline(tmp_path: Path) -> None:
     def learned(obs: np.ndarray, state: object, is_first: np.ndarray) -> tuple[np.ndarray, object]:
         return agent.policy(obs, state, mode="eval", is_first=is_first)
 
-    random_return = _mean_return(uniform, episodes=5, seed=100)
-    learned_return = _mean_return(learned, episodes=5, seed=100)
+    random_return = toy_expert.mean_return(uniform, episodes=5, seed=100)
+    learned_return = toy_expert.mean_return(learned, episodes=5, seed=100)
     # Measured: data ~46, random ~9.5, learned ~45 (seeds 0-2 give 44-47 after 400 updates).
     print(f"toy_reach returns: data {data_return:.1f}, random {random_return:.1f}, learned {learned_return:.1f}")
     assert learned_return > random_return + 0.5 * (data_return - random_return), (learned_return, random_return)

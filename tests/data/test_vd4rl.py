@@ -25,6 +25,7 @@ from coworld.cli import main
 from coworld.data import DatasetWriter, import_vd4rl, open_dataset, verify_dataset
 from coworld.data.vd4rl import scan_vd4rl
 from coworld.errors import CoworldError
+from coworld.training.logger import read_metrics
 
 COWORLD = [sys.executable, "-c", "from coworld.cli import main; main()"]
 A = 6  # V-D4RL's walker_walk and cheetah_run
@@ -324,6 +325,7 @@ def imported_walker(tmp_path_factory: pytest.TempPathFactory) -> Path:
     ("algo", "schedule"),
     [
         ("dreamerv2", ["--set", "coworld.iterations=1", "--set", "coworld.target_updates=3"]),
+        ("drq-bc", ["--set", "drqbc.updates=3", "--set", "drqbc.eval_every=3", "--set", "drqbc.checkpoint_every=3"]),
         pytest.param(
             "curl-cql",
             ["--set", "curl.updates=3", "--set", "curl.eval_every=3", "--set", "curl.checkpoint_every=3"],
@@ -337,8 +339,11 @@ def test_imported_dataset_trains(imported_walker: Path, tmp_path: Path, algo: st
     proc = subprocess.run([*COWORLD, "train", "--algo", algo, "--target", "walker_walk", "--dataset",
                            str(imported_walker), "--preset", "tiny", "--device", "cpu", "--threads", "1",
                            "--no-progress", "--set", "train.eval_episodes=1", "--set", "curl.eval_episodes=1",
+                           "--set", "drqbc.eval_episodes=1",
                            *schedule, "--logdir", str(run)], capture_output=True, text=True, timeout=600)  # fmt: skip
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert f"done: {run}" in proc.stdout
     state = torch.load(run / "checkpoint.pt", weights_only=True)
     assert state["updates"] == 3 and state["kind"] == {"dreamerv2": "dreamerv2-offline"}.get(algo, algo)
+    evaluations = [record for record in read_metrics(run) if "eval/return" in record]
+    assert evaluations and evaluations[-1]["step"] == 3  # evaluated in walker_walk after its last update

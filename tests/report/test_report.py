@@ -215,3 +215,21 @@ def test_missing_report_extra_gives_the_install_hint(tmp_path, monkeypatch, miss
     out = CliRunner().invoke(main, ["report", str(tmp_path)])
     assert out.exit_code == 2 and "pip install 'coworld[report]'" in out.output
     assert sorted(p.name for p in tmp_path.iterdir()) == ["r"]  # nothing written
+
+
+def test_a_fine_tuned_run_reports_its_target_updates_and_evaluations_not_its_source_phase(tmp_path: Path) -> None:
+    records = [
+        {"step": 1000, "unit": "source_env_step", "source/eval/return": 30.0, "source/eval/return_std": 1.0},
+        {"step": 2000, "unit": "source_env_step", "source/wm/loss": 5.0},
+        {"step": 20, "unit": "update", "eval/return": 12.0, "eval/value_estimate": 1.0},
+        {"step": 40, "unit": "update", "eval/return": 18.0, "eval/value_estimate": 1.0},
+    ]
+    run = make_run(tmp_path, "ft", algo="dreamerv2-finetune", source="toy_reach", target="toy_reach_shifted", seed=0,
+                   returns=[18.0], records=records)  # fmt: skip
+    result = load_result(run)
+    assert result.updates == 40 and result.pair == "toy_reach->toy_reach_shifted"
+    assert learning_curve(run, "dreamerv2-finetune") == [(20, 12.0), (40, 18.0)]
+    make_run(tmp_path, "drq", algo="drq-bc", target="toy_reach_shifted", seed=0, returns=[9.0])
+    make_run(tmp_path, "dv", algo="dreamerv2", target="toy_reach_shifted", seed=0, returns=[10.0])
+    header = results_table(load_results(tmp_path)).splitlines()[0]
+    assert header.index("drq-bc") < header.index("dreamerv2 ") < header.index("dreamerv2-finetune")  # ALGO_ORDER

@@ -33,7 +33,7 @@ def test_table1_is_the_papers_five_dmc_pairs():
         ("cheetah_run", "cheetah_nopaw"),
     )
     assert spec.preset == "paper" and spec.data.quality == "medium-replay" and spec.eval_episodes == 10
-    assert len(spec.runs()) == 5 * 4 * 3
+    assert len(spec.runs()) == 5 * 7 * 3  # every algorithm, DrQ+BC and the two DreamerV2 variants included
 
 
 def test_table2_is_the_papers_five_metaworld_pairs():
@@ -76,7 +76,21 @@ def test_ablation_switches_each_term_off_in_turn():
     # on a table: the table's grid with the variants added, only CoWorld runs multiplied
     toy = build_spec(table="toy", ablation=True)
     assert toy.pairs == TOY and toy.variants == ABLATION
-    assert len(toy.runs()) == 3 * (4 + 3)
+    assert len(toy.runs()) == 3 * (7 + 3)
+
+
+def test_algorithms_with_a_source_keep_it_and_the_others_share_the_target():
+    spec = SweepSpec(
+        pairs=(("walker_walk", "walker_uphill"), ("cheetah_run", "walker_uphill")),
+        algos=("dreamerv2-finetune", "drq-bc", "dreamerv2-penalty"),
+        seeds=(0,),
+    ).check()
+    assert [run.name for run in spec.runs()] == [
+        "dreamerv2-finetune-walker_walk-walker_uphill-s0",
+        "drq-bc-walker_uphill-s0",
+        "dreamerv2-penalty-walker_uphill-s0",
+        "dreamerv2-finetune-cheetah_run-walker_uphill-s0",
+    ]
 
 
 def test_baselines_are_shared_by_pairs_with_the_same_target():

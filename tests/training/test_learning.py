@@ -8,6 +8,7 @@ toy_reach (the best constant action 30.7), which is where the learned policy end
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import torch
 
 from coworld.agents.dreamerv2 import DreamerV2
@@ -56,3 +57,35 @@ def test_tiny_dreamerv2_learns_toy_reach(tmp_path):
     random, _ = evaluate(RandomAgent(2, seed=0), "toy_reach", episodes=10, seed=123)
     # Measured: random about 10, the learned policy about 30 (expert 46.5, best constant action 30.7).
     assert learned.mean > random.mean + 10.0, (learned.mean, random.mean)
+
+
+@pytest.mark.slow
+def test_tiny_dreamerv2_finetune_transfers_to_the_shifted_target(tmp_path, toy_dataset_writer):
+    """DreamerV2 pretrained online in toy_reach (1,300 steps, as test_tiny_dreamerv2_learns_toy_reach) and fine-tuned
+    200 updates on 20 random toy_reach_shifted episodes, through `coworld train`, beats a random policy there."""
+    from click.testing import CliRunner
+
+    from coworld.cli import main
+    from coworld.training.logger import read_metrics
+
+    dataset = toy_dataset_writer(tmp_path / "target.h5", "toy_reach_shifted", episodes=20)
+    run = tmp_path / "run"
+    args = "train --algo dreamerv2-finetune --source toy_reach --target toy_reach_shifted --preset tiny --device cpu"
+    sets = ["train.train_every=2", "train.eval_every=100000", "train.eval_episodes=10", "coworld.pretrain_steps=1300"]
+    sets += ["coworld.iterations=1", "coworld.target_updates=200"]
+    result = CliRunner().invoke(
+        main,
+        [
+            *args.split(),
+            "--no-progress",
+            "--dataset",
+            str(dataset),
+            "--logdir",
+            str(run),
+            *sum((["--set", s] for s in sets), []),
+        ],
+    )
+    assert result.exit_code == 0, result.output
+    target = [r["eval/return"] for r in read_metrics(run) if "eval/return" in r]
+    random, _ = evaluate(RandomAgent(2, seed=0), "toy_reach_shifted", episodes=10, seed=10_000)
+    assert target and target[-1] > random.mean + 10.0, (target, random.mean)
