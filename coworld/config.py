@@ -113,6 +113,9 @@ class WorldModelConfig:
     """Learn a discount head from terminal flags (else imagination uses the constant discount). Off, as in
     DreamerV2's DMC config and the authors' release: no task here terminates, and an untrained head starts at
     P(continue) = 0.5, halving imagination's discount until it has learned."""
+    zero_init_reward: bool = False
+    """Start the reward head at 0 everywhere (DreamerV3): imagined returns give the actor no direction until the
+    head has learned one."""
     unimix: Annotated[float, Range(0, 1, high_open=True)] = 0.0
     """Uniform mixture on the categorical latents (0 = DreamerV2; 0.01 = DreamerV3's)."""
     lr: Annotated[float, POSITIVE] = 2e-4
@@ -157,6 +160,8 @@ class ActorCriticConfig:
     (DreamerV3's: ``Normal(tanh(m), std)`` with std in [actor_min_std, actor_max_std], samples not truncated in
     imagination and clipped to [-1, 1] when acted). With a truncated normal, widening the spread moves the mean
     action away from a bound, so a return that wants a bound also shrinks the spread; an untruncated one does not."""
+    zero_init_critic: bool = False
+    """Start the critic (and its slow target) at 0 everywhere (DreamerV3)."""
     return_norm: bool = False
     """Divide the actor's returns by ``max(1, P95 - P5)`` of recent imagined returns (an EMA of the percentiles),
     so the entropy bonus means the same at any return scale (DreamerV3's return normalisation)."""

@@ -123,6 +123,8 @@ class ActorCritic(nn.Module):
             max_std=config.actor_max_std,
         )
         self.critic = Critic(feat_size=feat_size, units=config.units, layers=config.layers)
+        if config.zero_init_critic:
+            self.critic.mlp.zero_output()
         self.slow_critic = copy.deepcopy(self.critic)
         self.slow_critic.requires_grad_(False)
         self.register_buffer("updates", torch.zeros((), dtype=torch.long))

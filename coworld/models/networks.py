@@ -138,6 +138,14 @@ class MLP(nn.Module):
         """``(..., in_size)`` -> ``(..., out_size)``."""
         return self.net(x)
 
+    @torch.no_grad()
+    def zero_output(self) -> None:
+        """Zero the output layer's weights and bias, so the MLP starts at 0 everywhere (DreamerV3's ``outscale``
+        0 for its reward head and critic)."""
+        output = self.net[len(self.net) - 1]
+        output.weight.zero_()
+        output.bias.zero_()
+
 
 class LayerNormGRUCell(nn.Module):
     """GRU cell with layer normalisation of the gate pre-activations (DreamerV2's ``GRUCell(norm=True)``).

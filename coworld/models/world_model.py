@@ -87,6 +87,8 @@ class WorldModel(nn.Module):
         """Length of the features ``D + S * K``."""
         self.decoder = ConvDecoder(feat_size=self.feat_size, channels=channels, depth=config.cnn_depth)
         self.reward_head = RewardHead(feat_size=self.feat_size, units=config.mlp_units, layers=config.mlp_layers)
+        if config.zero_init_reward:
+            self.reward_head.mlp.zero_output()
         self.discount_head: DiscountHead | None = (
             DiscountHead(feat_size=self.feat_size, units=config.mlp_units, layers=config.mlp_layers)
             if config.pred_discount

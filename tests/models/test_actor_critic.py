@@ -260,3 +260,17 @@ def test_return_norm_divides_the_actors_returns_by_the_scale(tiny: Config) -> No
     scale = float(metrics["actor/return_scale"])
     assert scale > 1.0
     torch.testing.assert_close(terms["actor_terms"], -terms["target"][1:] / scale)
+
+
+def test_zero_initialised_reward_head_and_critic_start_at_zero(tiny: Config) -> None:
+    from coworld.models.world_model import WorldModel
+
+    wm_config = dataclasses.replace(tiny.world_model, zero_init_reward=True)
+    ac_config = dataclasses.replace(tiny.actor_critic, zero_init_critic=True)
+    world_model = WorldModel(config=wm_config, action_size=2)
+    ac = ActorCritic(config=ac_config, feat_size=world_model.feat_size, action_size=2)
+    feat = torch.randn(7, world_model.feat_size)
+    assert torch.equal(world_model.reward_head(feat).mean, torch.zeros(7))
+    assert torch.equal(ac.critic(feat).mean, torch.zeros(7)) and torch.equal(ac.slow_critic(feat).mean, torch.zeros(7))
+    plain = WorldModel(config=tiny.world_model, action_size=2)
+    assert plain.reward_head(feat).mean.abs().sum() > 0  # off by default: DreamerV2's initialisation
