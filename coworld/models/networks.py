@@ -202,4 +202,4 @@ class LayerNormGRUCell(nn.Module):
         reset = torch.sigmoid(reset)
         cand = torch.tanh(reset * cand)
         update = torch.sigmoid(update + self.update_bias)
-        return update * cand + (1.0 - update) * h
+        return torch.lerp(h, cand, update)  # u * c + (1 - u) * h in one op
