@@ -7,6 +7,8 @@ Examples::
     python benchmarks/train_throughput.py                              # tiny preset on CPU (2 threads)
     python benchmarks/train_throughput.py --preset paper --device cpu --updates 1 --warmup 0
     python benchmarks/train_throughput.py --preset paper --device cuda --compare   # fp32 / bf16, eager / compiled
+    python benchmarks/train_throughput.py --threads 1 --set train.batch_size=16 --set train.seq_len=32 \
+        --interleave /tmp/base --blocks 4 --updates 6    # this tree against another checkout, side by side
 
 Batches are random uint8 frames (throughput does not depend on content). Timings are medians over
 ``--updates`` measured steps after ``--warmup`` steps; CUDA work is synchronised before each clock read.
@@ -15,16 +17,26 @@ Batches are random uint8 frames (throughput does not depend on content). Timings
 * ``imagine``: the imagination rollout alone (H steps from B * T start states, forward only with graph);
 * ``actor_critic``: one full actor-critic update (imagination, losses, backward, two AdamW steps);
 * ``train``: one complete :meth:`DreamerV2.train` call (both updates plus the batch transfer).
+
+``--interleave PATH`` times whole updates (DreamerV2, CoWorld's target and source) of this tree and of the
+checkout at ``PATH`` in alternating fresh processes, ``--blocks`` rounds, each process timing ``--updates`` calls
+after ``--warmup``; it prints the min and median seconds per update of each side and block with the 1-minute load
+average read before the block. This tree runs twice per block: with the CLI's malloc settings
+(:func:`coworld.allocator.keep_freed_memory`, as every ``coworld`` command runs) and without them.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import statistics
+import subprocess
+import sys
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -138,6 +150,78 @@ def measure_others(preset: str, device: str, warmup: int, repeats: int, action_s
     return out
 
 
+def worker(args: argparse.Namespace) -> None:
+    """One side of ``--interleave``: time whole updates of the ``coworld`` on ``sys.path``, print JSON."""
+    import coworld
+
+    if args.allocator:
+        from coworld import allocator
+
+        allocator.keep_freed_memory()
+    torch.set_num_threads(args.threads)
+    torch.manual_seed(0)
+    overrides = {"device": args.device, **dict(item.split("=", 1) for item in args.set)}
+    config = make_config(args.preset, overrides)
+    batch = random_batch(config.train.batch_size, config.train.seq_len, args.action_size)
+    agent = DreamerV2(config=config, action_size=args.action_size)
+    updates: dict[str, Callable[[], object]] = {"dreamerv2": lambda: agent.train(batch)}
+    if args.algo in ("others", "all"):
+        from coworld.agents.coworld import CoWorld
+
+        pair = CoWorld(config=config, action_size=args.action_size, device=resolve_device(args.device))
+        pair.target_batches = iter(lambda: batch, None)
+        updates["coworld target"] = lambda: pair.train_target(batch)
+        updates["coworld source"] = lambda: pair.train_source(batch)
+    out: dict[str, object] = {"coworld": str(Path(coworld.__file__).parent.parent)}
+    for name, update in updates.items():
+        for _ in range(args.warmup):
+            update()
+        times = []
+        for _ in range(args.updates):
+            start = time.perf_counter()
+            update()
+            times.append(time.perf_counter() - start)
+        out[name] = times
+    print(json.dumps(out))
+
+
+def interleave(args: argparse.Namespace) -> None:
+    """Alternate worker processes of this tree and of ``args.interleave``; print min / median per block."""
+    here = Path(__file__).resolve().parent.parent
+    sides = [("base", Path(args.interleave).resolve(), False), ("new", here, False), ("new+malloc", here, True)]
+    common = ["--threads", str(args.threads), "--updates", str(args.updates), "--warmup", str(args.warmup)]
+    common += ["--preset", args.preset, "--device", args.device, "--algo", args.algo]
+    common += ["--action-size", str(args.action_size)] + [f"--set={item}" for item in args.set]
+    rows = []
+    for block in range(args.blocks):
+        for label, tree, tuned in sides:
+            with open("/proc/loadavg") as f:
+                load = float(f.read().split()[0])
+            env = {**os.environ, "PYTHONPATH": str(tree)}
+            command = [sys.executable, __file__, "--worker", *common] + (["--allocator"] if tuned else [])
+            result = json.loads(
+                subprocess.run(command, env=env, cwd=tree, capture_output=True, check=True, text=True).stdout
+            )
+            assert Path(result.pop("coworld")) == tree, "the worker imported another checkout"
+            for name, times in result.items():
+                rows.append((block, label, name, load, min(times), statistics.median(times)))
+                print(
+                    f"block {block} {label:<11}{name:<16} load {load:5.2f}  min {min(times):.3f} s  median "
+                    f"{statistics.median(times):.3f} s",
+                    flush=True,
+                )
+    print(f"\n{'update':<16}{'side':<12}{'min s (best block)':>20}{'median of block medians':>25}{'x base':>8}")
+    for name in dict.fromkeys(row[2] for row in rows):
+        base = statistics.median(r[5] for r in rows if r[2] == name and r[1] == "base")
+        for label, _, _ in sides:
+            mine = [r for r in rows if r[2] == name and r[1] == label]
+            median = statistics.median(r[5] for r in mine)
+            print(f"{name:<16}{label:<12}{min(r[4] for r in mine):>20.3f}{median:>25.3f}{base / median:>8.2f}")
+    if args.json:
+        keys = ("block", "side", "update", "load", "min_s", "median_s")
+        Path(args.json).write_text(json.dumps([dict(zip(keys, row, strict=True)) for row in rows], indent=2))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--preset", default="tiny", choices=["tiny", "paper"])
@@ -156,7 +240,16 @@ def main() -> None:
         help="dreamerv2 (with its breakdown), others (CoWorld, CURL, CURL+CQL) or all",
     )
     parser.add_argument("--json", default=None, help="also write the timings to this JSON file")
+    parser.add_argument("--set", action="append", default=[], help="config override KEY=VALUE (repeatable)")
+    parser.add_argument("--interleave", metavar="PATH", help="time against the coworld checkout at PATH")
+    parser.add_argument("--blocks", type=int, default=4, help="alternating rounds of --interleave")
+    parser.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
+    parser.add_argument("--allocator", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
+    if args.worker:
+        return worker(args)
+    if args.interleave:
+        return interleave(args)
     torch.set_num_threads(args.threads)
     torch.manual_seed(0)
     if args.algo in ("others", "all"):

@@ -95,12 +95,18 @@ class OneHotCategorical:
         index = self.logits.argmax(dim=-1)
         return F.one_hot(index, self.logits.shape[-1]).to(self.logits.dtype)
 
-    def rsample(self) -> Tensor:
-        """Straight-through one-hot sample, shape ``(..., S, K)``."""
+    def rsample(self, noise: Tensor | None = None) -> Tensor:
+        """Straight-through one-hot sample, shape ``(..., S, K)``.
+
+        The class is ``argmax(probs / q)`` with ``q ~ Exp(1)`` of shape ``(..., S, K)`` (``noise``, drawn here when
+        None): the exponential race ``torch.multinomial`` runs for one sample, so the same random numbers give
+        the same classes, without its input checks (each a host synchronisation).
+        """
         probs = self.probs
-        flat = probs.reshape(-1, probs.shape[-1])
-        index = torch.multinomial(flat.detach().float(), 1).squeeze(-1)
-        sample = F.one_hot(index, probs.shape[-1]).to(probs.dtype).reshape(probs.shape)
+        if noise is None:
+            noise = torch.empty_like(probs, dtype=torch.float32).exponential_()
+        index = (probs.detach().float() / noise).argmax(dim=-1)
+        sample = F.one_hot(index, probs.shape[-1]).to(probs.dtype)
         return sample + probs - probs.detach()
 
     def entropy(self) -> Tensor:

@@ -3,7 +3,8 @@
 * :class:`ConvEncoder`: 4 conv layers, kernel 4, stride 2, channels ``d, 2d, 4d, 8d``, ELU; 64 x 64 image to a
   flat embedding of ``8d * 2 * 2`` numbers.
 * :class:`ConvDecoder`: dense layer to ``32d`` channels at 1 x 1, then 4 transposed convs (kernels 5, 5, 6, 6,
-  stride 2; channels ``4d, 2d, d, C``) back to 64 x 64: the mean of a unit-variance Gaussian over pixels.
+  stride 2; channels ``4d, 2d, d, C``) back to 64 x 64: the mean of a unit-variance Gaussian over pixels. They
+  run as :func:`conv_transpose_stride2` (the same function as ``nn.ConvTranspose2d``, 2-3x faster on a CPU).
 * :class:`MLP`: ELU multilayer perceptron used by the heads, the actor and the critic.
 * :class:`LayerNormGRUCell`: DreamerV2's GRU cell with layer normalisation and update bias -1.
 
@@ -16,6 +17,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor, nn
 
 from coworld.errors import CoworldError
@@ -26,6 +28,7 @@ __all__ = [
     "LayerNormGRUCell",
     "MLP",
     "check_image_shape",
+    "conv_transpose_stride2",
     "frozen_parameters",
     "glorot_init",
 ]
@@ -67,6 +70,37 @@ def frozen_parameters(module: nn.Module) -> Iterator[None]:
     finally:
         for p in params:
             p.requires_grad_(True)
+
+
+def conv_transpose_stride2(x: Tensor, weight: Tensor, bias: Tensor | None) -> Tensor:
+    """``F.conv_transpose2d(x, weight, bias, stride=2)`` computed as one ordinary convolution and a pixel shuffle.
+
+    With ``M = ceil(K / 2)``, the output pixel ``(2q + p, 2r + s)`` of a stride-2 transposed convolution only
+    sees the kernel taps ``(p + 2m, s + 2n)``, ``m, n < M``, applied to the input pixels ``(q - m, r - n)``:
+    an ordinary ``M x M`` convolution of the input padded by ``M - 1``, one output channel per phase ``(p, s)``.
+    The four phases are stacked as ``4 C_out`` channels of one convolution and then interleaved
+    (PyTorch's CPU transposed convolution scatters columns instead, several times slower at DreamerV2's sizes).
+    A 1 x 1 input (the decoder's first layer) is one matrix product. The result equals the transposed
+    convolution up to float rounding (summation order), gradients included.
+
+    Shapes: ``x (N, C_in, H, W)``, ``weight (C_in, C_out, K, K)`` (``nn.ConvTranspose2d``'s layout),
+    ``bias (C_out,)``; returns ``(N, C_out, 2 (H - 1) + K, 2 (W - 1) + K)``.
+    """
+    c_in, c_out, kernel, _ = weight.shape
+    n, _, height, width = x.shape
+    if height == 1 and width == 1:
+        out = (x.reshape(n, c_in) @ weight.reshape(c_in, -1)).reshape(n, c_out, kernel, kernel)
+        return out if bias is None else out + bias[:, None, None]
+    m = (kernel + 1) // 2
+    taps = F.pad(weight, (0, 2 * m - kernel, 0, 2 * m - kernel)).reshape(c_in, c_out, m, 2, m, 2)
+    phases = taps.flip(2, 4).permute(3, 5, 1, 0, 2, 4).reshape(4 * c_out, c_in, m, m)
+    phase_bias = None if bias is None else bias.repeat(4)
+    y = F.conv2d(x, phases, phase_bias, padding=m - 1)  # (N, [p, s, C_out], H + M - 1, W + M - 1)
+    rows, cols = y.shape[-2:]
+    # Interleave the phases into a channels-last image (a plain strided copy, faster than pixel_shuffle here).
+    out = y.permute(0, 2, 3, 1).reshape(n, rows, cols, 2, 2, c_out).transpose(2, 3)
+    out = out.reshape(n, 2 * rows, 2 * cols, c_out).permute(0, 3, 1, 2)
+    return out[..., : 2 * (height - 1) + kernel, : 2 * (width - 1) + kernel]
 
 
 class ConvEncoder(nn.Module):
@@ -115,8 +149,14 @@ class ConvDecoder(nn.Module):
     def forward(self, feat: Tensor) -> Tensor:
         """``(..., feat_size)`` -> ``(..., C, 64, 64)``."""
         batch = feat.shape[:-1]
-        x = self.linear(feat.reshape(-1, feat.shape[-1])).reshape(-1, 32 * self.depth, 1, 1)
-        out = self.net(x)
+        out = self.linear(feat.reshape(-1, feat.shape[-1])).reshape(-1, 32 * self.depth, 1, 1)
+        for layer in self.net:
+            if isinstance(layer, nn.ConvTranspose2d):
+                out = conv_transpose_stride2(
+                    out.contiguous(memory_format=torch.channels_last), layer.weight, layer.bias
+                )
+            else:
+                out = layer(out)
         return out.reshape(*batch, *out.shape[1:])
 
 
@@ -170,4 +210,4 @@ class LayerNormGRUCell(nn.Module):
         reset = torch.sigmoid(reset)
         cand = torch.tanh(reset * cand)
         update = torch.sigmoid(update + self.update_bias)
-        return update * cand + (1.0 - update) * h
+        return torch.lerp(h, cand, update)  # u * c + (1 - u) * h in one op

@@ -17,6 +17,7 @@ Features fed to every head are ``[deter, stoch flattened]``: ``(..., D + S * K)`
 from __future__ import annotations
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor, nn
 
 from coworld.models.distributions import OneHotCategorical
@@ -74,13 +75,18 @@ class RSSM(nn.Module):
         """The categorical distribution of ``z`` in ``state`` (batch ``(..., S)``, ``K`` classes)."""
         return OneHotCategorical(state["logits"])
 
-    def img_step(self, prev_state: State, prev_action: Tensor, sample: bool = True) -> State:
-        """Prior step: ``(N, ...)`` state and ``(N, A)`` action to the prior state at the next step ``(N, ...)``."""
+    def img_step(
+        self, prev_state: State, prev_action: Tensor, sample: bool = True, noise: Tensor | None = None
+    ) -> State:
+        """Prior step: ``(N, ...)`` state and ``(N, A)`` action to the prior state at the next step ``(N, ...)``.
+
+        ``noise (N, S, K)``: the sample's exponential noise (see :meth:`OneHotCategorical.rsample`), drawn here
+        when None."""
         stoch = prev_state["stoch"].reshape(prev_action.shape[0], -1)
         x = self.img_in(torch.cat([stoch, prev_action.to(stoch.dtype)], dim=-1))
         deter = self.cell(x, prev_state["deter"])
         logits = self._logits(self.img_out(deter))
-        return {"deter": deter, "logits": logits, "stoch": self._sample(logits, sample)}
+        return {"deter": deter, "logits": logits, "stoch": self._sample(logits, sample, noise)}
 
     def obs_step(
         self,
@@ -99,9 +105,7 @@ class RSSM(nn.Module):
             prev_state = {k: v * keep.reshape(-1, *([1] * (v.ndim - 1))) for k, v in prev_state.items()}
             prev_action = prev_action * keep[:, None]
         prior = self.img_step(prev_state, prev_action, sample)
-        logits = self._logits(self.obs_out(torch.cat([prior["deter"], embed.to(prior["deter"].dtype)], dim=-1)))
-        post = {"deter": prior["deter"], "logits": logits, "stoch": self._sample(logits, sample)}
-        return post, prior
+        return self._posterior(prior, self._embed_share(embed), sample), prior
 
     def observe(
         self, embed: Tensor, action: Tensor, is_first: Tensor, state: State | None = None
@@ -110,17 +114,42 @@ class RSSM(nn.Module):
 
         ``embed (B, T, E)``; ``action (B, T, A)`` is the action that led to step ``t``; ``is_first (B, T)``
         resets the recurrent state; ``state`` (batch ``(B,)``) is the state before step 0 (zeros if None).
+
+        The same computation as :meth:`obs_step` at every ``t``, with the work that does not depend on the
+        recurrent state done once for all steps: the embeddings' share of the posterior's first layer and the
+        exponential noise of every categorical draw (one ``exponential_`` call that fills the numbers the
+        ``T`` prior and ``T`` posterior draws would take one by one, in the same order).
         """
         batch, length = action.shape[:2]
         if state is None:
             state = self.initial(batch, action.device)
+        keep = (~is_first.bool()).to(action.dtype).transpose(0, 1)[..., None]  # (T, B, 1)
+        embed_share = self._embed_share(embed).transpose(0, 1)  # (T, B, H)
+        action = action.transpose(0, 1)
+        noise = torch.empty(length, 2, batch, self.stoch, self.classes, device=action.device).exponential_()
         posts: list[State] = []
         priors: list[State] = []
         for t in range(length):
-            state, prior = self.obs_step(state, action[:, t], embed[:, t], is_first[:, t])
+            prev = {"deter": state["deter"] * keep[t], "stoch": state["stoch"] * keep[t, ..., None]}
+            prior = self.img_step(prev, action[t] * keep[t], noise=noise[t, 0])
+            state = self._posterior(prior, embed_share[t], True, noise[t, 1])
             posts.append(state)
             priors.append(prior)
         return stack_states(posts), stack_states(priors)
+
+    def _embed_share(self, embed: Tensor) -> Tensor:
+        """The embedding's part ``W_e e`` of the posterior's first layer ``W [h, e] + b``: ``(..., E) -> (..., H)``."""
+        first, *_ = self.obs_out
+        return F.linear(embed, first.weight[:, self.deter_size :])
+
+    def _posterior(self, prior: State, embed_share: Tensor, sample: bool, noise: Tensor | None = None) -> State:
+        """The posterior next to ``prior``, given :meth:`_embed_share` of the observation's embedding."""
+        first, *rest = self.obs_out  # Linear([h, e] -> hidden), ELU, Linear(hidden -> S * K)
+        hidden = F.linear(prior["deter"], first.weight[:, : self.deter_size], first.bias) + embed_share
+        for layer in rest:
+            hidden = layer(hidden)
+        logits = self._logits(hidden)
+        return {"deter": prior["deter"], "logits": logits, "stoch": self._sample(logits, sample, noise)}
 
     def _logits(self, raw: Tensor) -> Tensor:
         """Raw ``(N, S * K)`` outputs to normalised log-probabilities ``(N, S, K)``, float32, with unimix."""
@@ -130,10 +159,10 @@ class RSSM(nn.Module):
             return probs.log()
         return torch.log_softmax(logits, -1)
 
-    def _sample(self, logits: Tensor, sample: bool) -> Tensor:
-        """Straight-through one-hot sample (``sample``) or the one-hot mode, ``(N, S, K)``."""
+    def _sample(self, logits: Tensor, sample: bool, noise: Tensor | None = None) -> Tensor:
+        """Straight-through one-hot sample (``sample``, with ``noise`` if given) or the one-hot mode, ``(N, S, K)``."""
         dist = OneHotCategorical(logits)
-        return dist.rsample() if sample else dist.mode
+        return dist.rsample(noise) if sample else dist.mode
 
 
 def stack_states(states: list[State], dim: int = 1) -> State:

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 from typing import Any
 
+import torch
 from torch import Tensor, nn
 
 from coworld.config import WorldModelConfig
@@ -26,8 +27,12 @@ __all__ = ["DiscountHead", "RewardHead", "WorldModel", "preprocess_image"]
 
 
 def preprocess_image(image: Tensor) -> Tensor:
-    """uint8 ``(..., H, W, C)`` to float32 ``(..., C, H, W)`` in ``[-0.5, 0.5]``."""
-    return image.movedim(-1, -3).float() / 255.0 - 0.5
+    """uint8 ``(..., H, W, C)`` to float32 ``(..., C, H, W)`` in ``[-0.5, 0.5]``.
+
+    The result keeps the input's memory order (channels last), which the encoder's convolutions read fastest;
+    the scaling runs in place on the one new float tensor.
+    """
+    return image.movedim(-1, -3).to(torch.float32, copy=True).div_(255.0).sub_(0.5)
 
 
 class RewardHead(nn.Module):
@@ -110,7 +115,11 @@ class WorldModel(nn.Module):
         ``logits``/``stoch (B, T, S, K)``) and the embeddings ``(B, T, E)``. The recurrent state and the previous
         action are zeroed where ``is_first``; ``state`` (batch ``(B,)``) continues from an earlier chunk.
         """
-        embed = self.encode(batch["image"])
+        return self._observe(preprocess_image(batch["image"]), batch, state)
+
+    def _observe(self, image: Tensor, batch: dict[str, Tensor], state: State | None) -> tuple[State, State, Tensor]:
+        """:meth:`observe` from images already preprocessed, float ``(B, T, C, H, W)``."""
+        embed = self.encoder(image)
         post, prior = self.rssm.observe(embed, batch["action"], batch["is_first"], state)
         return post, prior, embed
 
@@ -127,10 +136,11 @@ class WorldModel(nn.Module):
         """
         cfg = self.config
         batch_size, length = batch["action"].shape[:2]
-        post, prior, embed = self.observe(batch)
+        image = preprocess_image(batch["image"])  # the encoder's input and the decoder's target
+        post, prior, embed = self._observe(image, batch, None)
         feat = self.features(post)
         terms: dict[str, Tensor] = {
-            "image": image_loss(self.decoder(feat).float(), preprocess_image(batch["image"])),
+            "image": image_loss(self.decoder(feat).float(), image),
             "reward": reward_loss(self.reward_head(feat), batch["reward"].float()),
         }
         if self.discount_head is not None:
