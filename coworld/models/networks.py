@@ -210,4 +210,5 @@ class LayerNormGRUCell(nn.Module):
         reset = torch.sigmoid(reset)
         cand = torch.tanh(reset * cand)
         update = torch.sigmoid(update + self.update_bias)
-        return torch.lerp(h, cand, update)  # u * c + (1 - u) * h in one op
+        dtype = torch.promote_types(h.dtype, cand.dtype)  # as u * c + (1 - u) * h would (bf16 autocast)
+        return torch.lerp(h.to(dtype), cand.to(dtype), update.to(dtype))  # u * c + (1 - u) * h in one op
