@@ -35,7 +35,7 @@ from torch import Tensor
 from coworld import interrupt
 from coworld.agents.dreamerv2 import DreamerV2
 from coworld.config import Config, to_dict
-from coworld.data import DatasetWriter, open_dataset
+from coworld.data import open_dataset
 from coworld.envs import task_spec
 from coworld.losses.coworld import (
     alignment_loss,
@@ -49,7 +49,7 @@ from coworld.progress import progress_bar
 from coworld.training.checkpoint import CHECKPOINT_NAME, load_checkpoint, rng_state, save_checkpoint, set_rng_state
 from coworld.training.evaluate import evaluate
 from coworld.training.logger import Logger, Rate
-from coworld.training.online import OnlineTrainer
+from coworld.training.online import OnlineTrainer, make_source_trainer, source_replay_writer
 from coworld.viz.training import log_open_loop
 
 CHECKPOINT_KIND = "coworld"
@@ -202,25 +202,10 @@ def train_coworld(job: Any, *, device: torch.device, resumed: bool, progress: bo
     ckpt_path = logdir / CHECKPOINT_NAME
     progress_state = {"iteration": 0, "phase": "pretrain", "last_eval": None}
 
-    writer = DatasetWriter(
-        logdir / "source_replay.h5",
-        task=job.source,
-        env_config={"task": job.source},
-        quality="medium-replay",
-        collector={"algorithm": "coworld-source", "seed": config.seed},
-        action_size=spec.action_size,
-        resume=True,
-    )
+    writer = source_replay_writer(logdir, job.source, algorithm="coworld", seed=config.seed)
     with Logger(logdir) as logger, writer:
-        source_trainer = OnlineTrainer(
-            agent=_SourceLearner(agent),
-            task=job.source,
-            config=config,
-            logdir=logdir / "source",
-            writer=writer,
-            logger=logger,
-            metric_prefix="source/",
-            step_unit_prefix="source_",
+        source_trainer = make_source_trainer(
+            _SourceLearner(agent), job.source, config=config, logdir=logdir, writer=writer, logger=logger
         )
         # restore: the combined checkpoint once past pretraining, else the pretraining checkpoint
         source_trainer.restore()

@@ -18,10 +18,8 @@ from pathlib import Path
 from typing import Any
 
 from coworld.agents.dreamerv2 import DreamerV2
-from coworld.data import DatasetWriter
-from coworld.envs import task_spec
 from coworld.training.logger import Logger
-from coworld.training.online import OnlineTrainer
+from coworld.training.online import make_source_trainer, source_replay_writer
 
 __all__ = ["pretrain_on_source"]
 
@@ -33,26 +31,9 @@ def pretrain_on_source(agent: DreamerV2, job: Any, *, logger: Logger, progress: 
     """
     config = job.config
     logdir = Path(job.logdir)
-    writer = DatasetWriter(
-        logdir / "source_replay.h5",
-        task=job.source,
-        env_config={"task": job.source},
-        quality="medium-replay",
-        collector={"algorithm": "dreamerv2-finetune-source", "seed": config.seed},
-        action_size=task_spec(job.source).action_size,
-        resume=True,
-    )
+    writer = source_replay_writer(logdir, job.source, algorithm="dreamerv2-finetune", seed=config.seed)
     with writer:
-        trainer = OnlineTrainer(
-            agent=agent,
-            task=job.source,
-            config=config,
-            logdir=logdir / "source",
-            writer=writer,
-            logger=logger,
-            metric_prefix="source/",
-            step_unit_prefix="source_",
-        )
+        trainer = make_source_trainer(agent, job.source, config=config, logdir=logdir, writer=writer, logger=logger)
         try:
             trainer.restore()
             if trainer.steps < config.coworld.pretrain_steps or not trainer.checkpoint_path.exists():

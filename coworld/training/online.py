@@ -350,3 +350,34 @@ class OnlineTrainer:
             tag=f"{self.prefix}openl/{self.task}",
             unit=self.step_unit,
         )
+
+
+def source_replay_writer(logdir: str | Path, source: str, *, algorithm: str, seed: int) -> DatasetWriter:
+    """The dataset that records a two-phase run's online source experience (``<logdir>/source_replay.h5``),
+    resumed when it exists; ``algorithm`` names the run's algorithm in its collector metadata."""
+    return DatasetWriter(
+        Path(logdir) / "source_replay.h5",
+        task=source,
+        env_config={"task": source},
+        quality="medium-replay",
+        collector={"algorithm": f"{algorithm}-source", "seed": seed},
+        action_size=envs.task_spec(source).action_size,
+        resume=True,
+    )
+
+
+def make_source_trainer(
+    agent: Any, source: str, *, config: Config, logdir: str | Path, writer: DatasetWriter, logger: Logger
+) -> OnlineTrainer:
+    """The online trainer of a two-phase run's source agent (CoWorld's, a fine-tuned DreamerV2's): its checkpoint
+    in ``<logdir>/source``, its metrics and step unit marked ``source``."""
+    return OnlineTrainer(
+        agent=agent,
+        task=source,
+        config=config,
+        logdir=Path(logdir) / "source",
+        writer=writer,
+        logger=logger,
+        metric_prefix="source/",
+        step_unit_prefix="source_",
+    )
