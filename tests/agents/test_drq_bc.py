@@ -116,3 +116,13 @@ def test_drq_bc_learns_toy_reach_offline(tmp_path: Path, toy_expert: types.Modul
     learned_return = toy_expert.mean_return(learned, episodes=5, seed=100)
     print(f"toy_reach returns: data {data_return:.1f}, random {random_return:.1f}, learned {learned_return:.1f}")
     assert learned_return > random_return + 0.5 * (data_return - random_return), (learned_return, random_return)
+
+    def constant(direction: float):
+        action = np.array([[np.cos(direction), np.sin(direction)]], np.float32)
+        return lambda obs, state, is_first: (action, state)
+
+    # Reading the dot, not only heading for the goal's side: better than every constant direction (about 30).
+    best_constant = max(
+        toy_expert.mean_return(constant(angle), episodes=5, seed=100) for angle in np.linspace(0, 2 * np.pi, 16, False)
+    )
+    assert learned_return > best_constant + 3.0, (learned_return, best_constant)
