@@ -167,6 +167,19 @@ class ActorCriticConfig:
     so the entropy bonus means the same at any return scale (DreamerV3's return normalisation)."""
     return_norm_decay: Annotated[float, Range(0, 1, high_open=True)] = 0.99
     """EMA decay of the return percentiles (DreamerV3: 0.99)."""
+    actor_absmax: bool = False
+    """Scale each imagined action sample whose magnitude is above 1 back to the bound, keeping its gradient with the
+    scale held fixed (DreamerV3's PyTorch port: ``a * sg(1 / max(|a|, 1))``). Without it an untruncated actor's
+    samples beyond [-1, 1] reach the world model, which never saw such actions."""
+    actor_advantage: bool = False
+    """'dynamics' only: the actor maximises ``R_{t+1} - v(s_t)`` instead of ``R_{t+1}``, with ``v`` the critic that
+    makes the targets, differentiated through the imagined states (DreamerV3: its advantage is the objective)."""
+    critic_target: Annotated[str, OneOf(("slow", "critic"))] = "slow"
+    """Which critic's values the lambda-returns bootstrap from: 'slow' (DreamerV2: the slow target) or 'critic'
+    (DreamerV3: the critic itself, the slow target then only regularises it, see ``slow_regulariser``)."""
+    slow_regulariser: Annotated[float, NON_NEGATIVE] = 0.0
+    """Weight of ``0.5 * (v - sg(v_slow))^2`` added to the critic loss on every imagined state (DreamerV3: 1, with
+    ``critic_target='critic'``, ``slow_target_every=1``, ``slow_target_fraction=0.02``)."""
     slow_target_every: Annotated[int, AT_LEAST_1] = 100
     """Updates between copies of the critic into its slow target."""
     slow_target_fraction: Annotated[float, Range(0, 1, low_open=True)] = 1.0

@@ -6,11 +6,13 @@ leading ``(H + 1, N)``; index 0 is the start state (its ``action`` entry is zero
 
     Actions:        0   [a1]  [a2]   a3          a_{t+1} is taken in state t and leads to state t+1
     States:     [z0] -> [z1] -> z2 -> z3
-    Targets:     R0    [R1]  [R2]                lambda-returns, bootstrapped from the slow critic at H
+    Targets:     R0    [R1]  [R2]                lambda-returns, bootstrapped from the slow critic (or the critic)
     Weights:    [ 1]   [w1]   w2    w3           cumulative predicted discount of reaching the state
 
 The critic regresses ``v(z_t)`` to ``sg(R_t)`` for ``t < H``; the actor maximises ``R_{t+1}`` for ``t < H-1``
-(backpropagating through the dynamics) or uses REINFORCE with the slow critic as baseline, plus an entropy bonus.
+(backpropagating through the dynamics; with ``actor_advantage`` minus ``v(z_t)``) or uses REINFORCE with the value
+as baseline, plus an entropy bonus. ``critic_target='critic'`` bootstraps from the critic itself and
+``slow_regulariser`` pulls it towards its slow target instead (DreamerV3).
 With ``return_norm`` the actor's returns are first divided by ``max(1, P95 - P5)`` of recent returns (DreamerV3).
 """
 
@@ -28,7 +30,7 @@ from coworld.config import ActorCriticConfig
 from coworld.errors import ConfigError
 from coworld.losses.dreamer import actor_loss, critic_loss, lambda_return
 from coworld.models.distributions import Normal, TanhNormal, TruncatedNormal, UnitGaussian
-from coworld.models.networks import MLP
+from coworld.models.networks import MLP, frozen_parameters
 from coworld.models.rssm import State, stack_states
 from coworld.models.world_model import WorldModel
 
@@ -182,6 +184,8 @@ class ActorCritic(nn.Module):
         for _ in range(horizon):
             policy = self.actor(feats[-1].detach())
             action = policy.rsample() if reparam else policy.sample()
+            if self.config.actor_absmax:
+                action = action * action.detach().abs().clamp_min(1.0).reciprocal()
             state = world_model.rssm.img_step(state, action)
             states.append(state)
             feats.append(world_model.features(state))
@@ -231,14 +235,22 @@ class ActorCritic(nn.Module):
         assert isinstance(continuation, Tensor) and isinstance(weight, Tensor)
         horizon = feat.shape[0] - 1
         slow_value = self.slow_critic(feat).mean
-        target = lambda_return(reward[:-1], slow_value[:-1], continuation[:-1], slow_value[-1], cfg.lambda_)
+        if cfg.critic_target == "slow":
+            bootstrap_value = slow_value
+        else:  # the critic's own values: a gradient to the actor through ``feat``, none to the critic's weights
+            with frozen_parameters(self.critic):
+                bootstrap_value = self.critic(feat).mean
+        target = lambda_return(
+            reward[:-1], bootstrap_value[:-1], continuation[:-1], bootstrap_value[-1], cfg.lambda_
+        )
 
         policy = self.actor(feat[:-2].detach())
         entropy = policy.entropy()
         scale = self.return_scale(target)
         if cfg.actor_grad == "dynamics":
+            objective = target[1:] - bootstrap_value[:-2] if cfg.actor_advantage else target[1:]
             actor_terms = actor_loss(
-                target=target[1:] / scale, weight=weight[:-2], entropy=entropy, entropy_scale=cfg.actor_entropy
+                target=objective / scale, weight=weight[:-2], entropy=entropy, entropy_scale=cfg.actor_entropy
             )
         else:
             actor_terms = actor_loss(
@@ -247,13 +259,15 @@ class ActorCritic(nn.Module):
                 entropy=entropy,
                 entropy_scale=cfg.actor_entropy,
                 log_prob=policy.log_prob(action[1:-1].detach()),
-                baseline=slow_value[:-2].detach() / scale,
+                baseline=bootstrap_value[:-2].detach() / scale,
             )
 
         critic_feat = feat[:-1].detach()
         value = self.critic(critic_feat).mean
         critic_terms = critic_loss(value, target, weight[:-1])
         metrics: dict[str, Tensor] = {}
+        if cfg.slow_regulariser > 0.0:
+            critic_terms = critic_terms + cfg.slow_regulariser * critic_loss(value, slow_value[:-1], weight[:-1])
         if value_regulariser is not None:
             regulariser = value_regulariser(critic_feat, value)
             if regulariser.shape != value.shape:

@@ -274,3 +274,81 @@ def test_zero_initialised_reward_head_and_critic_start_at_zero(tiny: Config) -> 
     assert torch.equal(ac.critic(feat).mean, torch.zeros(7)) and torch.equal(ac.slow_critic(feat).mean, torch.zeros(7))
     plain = WorldModel(config=tiny.world_model, action_size=2)
     assert plain.reward_head(feat).mean.abs().sum() > 0  # off by default: DreamerV2's initialisation
+
+
+def _traj(feat_size: int, horizon: int = 5, n: int = 3) -> dict[str, torch.Tensor]:
+    return {
+        "feat": torch.randn(horizon + 1, n, feat_size),
+        "action": torch.zeros(horizon + 1, n, 2),
+        "reward": torch.rand(horizon + 1, n),
+        "continuation": torch.full((horizon + 1, n), 0.9),
+        "weight": torch.ones(horizon + 1, n),
+    }
+
+
+def test_absmax_scales_imagined_samples_to_the_bound_and_keeps_their_gradient(tiny: Config) -> None:
+    torch.manual_seed(0)
+    wide = dataclasses.replace(tiny.actor_critic, actor_dist="normal", actor_min_std=3.0, actor_max_std=4.0)
+    for absmax in (False, True):
+        config = dataclasses.replace(tiny, actor_critic=dataclasses.replace(wide, actor_absmax=absmax))
+        wm, ac, start = _setup(config)
+        with frozen_parameters(wm):
+            traj = ac.imagine(wm, start)
+        largest = float(traj["action"].detach().abs().max())
+        if absmax:
+            assert largest == pytest.approx(1.0)  # at the bound, not beyond
+            grads = torch.autograd.grad(traj["reward"].sum(), list(ac.actor.parameters()), allow_unused=True)
+            assert sum(float(g.abs().sum()) for g in grads if g is not None) > 0
+        else:
+            assert largest > 2.0  # a spread of 3+ leaves [-1, 1] without it
+
+
+def test_critic_target_critic_bootstraps_from_the_critic_without_training_it_through_the_actor(tiny: Config) -> None:
+    torch.manual_seed(0)
+    config = dataclasses.replace(tiny.actor_critic, critic_target="critic", actor_entropy=0.0)
+    ac = ActorCritic(config=config, feat_size=8, action_size=2)
+    with torch.no_grad():  # make the critic and its slow target differ
+        for p in ac.critic.parameters():
+            p.add_(0.3 * torch.randn_like(p))
+    traj = _traj(8)
+    terms, _ = ac.losses(None, traj)
+    value = ac.critic(traj["feat"]).mean.detach()
+    expected = lambda_return(traj["reward"][:-1], value[:-1], traj["continuation"][:-1], value[-1], config.lambda_)
+    torch.testing.assert_close(terms["target"].detach(), expected)
+    slow = ac.slow_critic(traj["feat"]).mean.detach()
+    assert not torch.allclose(expected, lambda_return(traj["reward"][:-1], slow[:-1], traj["continuation"][:-1], slow[-1], config.lambda_))
+    terms["actor"].backward()
+    assert all(p.grad is None for p in ac.critic.parameters())  # the actor's loss does not move the critic
+
+
+def test_actor_advantage_subtracts_the_value_of_the_acting_state(tiny: Config) -> None:
+    torch.manual_seed(0)
+    base = dataclasses.replace(tiny.actor_critic, actor_entropy=0.0)
+    plain = ActorCritic(config=base, feat_size=8, action_size=2)
+    adv = ActorCritic(config=dataclasses.replace(base, actor_advantage=True), feat_size=8, action_size=2)
+    adv.load_state_dict(plain.state_dict())
+    traj = _traj(8)
+    terms_plain, _ = plain.losses(None, traj)
+    terms_adv, _ = adv.losses(None, traj)
+    slow = plain.slow_critic(traj["feat"]).mean.detach()
+    torch.testing.assert_close(terms_adv["actor_terms"], terms_plain["actor_terms"] + slow[:-2])
+
+
+def test_slow_regulariser_adds_the_weighted_distance_to_the_slow_critic(tiny: Config) -> None:
+    torch.manual_seed(0)
+    base = tiny.actor_critic
+    plain = ActorCritic(config=base, feat_size=8, action_size=2)
+    reg = ActorCritic(config=dataclasses.replace(base, slow_regulariser=0.5), feat_size=8, action_size=2)
+    with torch.no_grad():
+        for p in plain.critic.parameters():
+            p.add_(0.3 * torch.randn_like(p))
+    reg.load_state_dict(plain.state_dict())
+    traj = _traj(8)
+    traj["weight"] = torch.linspace(1.0, 0.5, 6)[:, None].expand(6, 3).contiguous()
+    terms_plain, _ = plain.losses(None, traj)
+    terms_reg, _ = reg.losses(None, traj)
+    value = plain.critic(traj["feat"][:-1]).mean.detach()
+    slow = plain.slow_critic(traj["feat"][:-1]).mean.detach()
+    extra = 0.5 * traj["weight"][:-1] * 0.5 * (value - slow) ** 2
+    assert float(extra.abs().sum()) > 0
+    torch.testing.assert_close(terms_reg["critic_terms"].detach(), terms_plain["critic_terms"].detach() + extra)
