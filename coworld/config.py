@@ -113,6 +113,9 @@ class WorldModelConfig:
     """Learn a discount head from terminal flags (else imagination uses the constant discount). Off, as in
     DreamerV2's DMC config and the authors' release: no task here terminates, and an untrained head starts at
     P(continue) = 0.5, halving imagination's discount until it has learned."""
+    reward_dist: Annotated[str, OneOf(("gaussian", "twohot"))] = "gaussian"
+    """Reward head: 'gaussian' (DreamerV2: unit-variance Gaussian, a squared error) or 'twohot' (DreamerV3: 255 bins
+    evenly spaced in symlog space, trained by cross-entropy against the two-hot encoding of the reward)."""
     zero_init_reward: bool = False
     """Start the reward head at 0 everywhere (DreamerV3): imagined returns give the actor no direction until the
     head has learned one."""
@@ -160,6 +163,9 @@ class ActorCriticConfig:
     (DreamerV3's: ``Normal(tanh(m), std)`` with std in [actor_min_std, actor_max_std], samples not truncated in
     imagination and clipped to [-1, 1] when acted). With a truncated normal, widening the spread moves the mean
     action away from a bound, so a return that wants a bound also shrinks the spread; an untruncated one does not."""
+    critic_dist: Annotated[str, OneOf(("gaussian", "twohot"))] = "gaussian"
+    """Critic head: 'gaussian' (DreamerV2: a squared error to the lambda-returns) or 'twohot' (DreamerV3: 255 bins
+    in symlog space, cross-entropy against the two-hot encoding of the return)."""
     zero_init_critic: bool = False
     """Start the critic (and its slow target) at 0 everywhere (DreamerV3)."""
     return_norm: bool = False

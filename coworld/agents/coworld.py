@@ -45,6 +45,7 @@ from coworld.losses.coworld import (
     source_reward_loss_on_target,
     value_regulariser,
 )
+from coworld.models.distributions import TwoHotSymlog
 from coworld.progress import progress_bar
 from coworld.training.checkpoint import CHECKPOINT_NAME, load_checkpoint, rng_state, save_checkpoint, set_rng_state
 from coworld.training.evaluate import evaluate
@@ -132,8 +133,9 @@ class CoWorld:
 
             def extra(_: dict[str, Tensor], __: dict[str, Any]) -> dict[str, Tensor]:
                 post, _, _ = self.source.world_model.observe(target_batch)
-                pred = self.source.world_model.reward_head(self.source.world_model.features(post)).mean
-                label = relabel_reward(pred, target_batch["reward"].float(), cfg.k)
+                head = self.source.world_model.reward_head(self.source.world_model.features(post))
+                label = relabel_reward(head.mean, target_batch["reward"].float(), cfg.k)
+                pred = head if isinstance(head, TwoHotSymlog) else head.mean
                 return {"relabel": source_reward_loss_on_target(pred, label).mean()}
 
         batch_t = self.source.to_batch(batch)

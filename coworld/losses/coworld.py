@@ -21,6 +21,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from coworld.models.distributions import TwoHotSymlog
+
 __all__ = [
     "alignment_loss",
     "embedding_alignment_loss",
@@ -148,7 +150,7 @@ def relabel_reward(source_pred: Tensor, target_reward: Tensor, k: float) -> Tens
     return k * source_pred.detach() + (1.0 - k) * target_reward
 
 
-def source_reward_loss_on_target(pred_mean: Tensor, relabelled: Tensor) -> Tensor:
+def source_reward_loss_on_target(pred_mean: Tensor | TwoHotSymlog, relabelled: Tensor) -> Tensor:
     """Target-batch term of Eq. 5: the source reward head's negative log-likelihood of the relabelled reward.
 
     Paper, Eq. 5::
@@ -168,13 +170,20 @@ def source_reward_loss_on_target(pred_mean: Tensor, relabelled: Tensor) -> Tenso
     eta * source``, ``eta = max(1 - step / 2e5, 0.2)``, with a step counter that never advances; the paper sums
     the two expectations with weight 1 each. The weighting is the caller's.
 
+    A :class:`TwoHotSymlog` head (``world_model.reward_dist='twohot'``) is passed as its distribution; the term
+    is then its cross-entropy against the relabelled reward's two-hot encoding.
+
     Args:
-        pred_mean: ``(B, T)`` mean reward of the source reward head on the target sequence (with gradient).
+        pred_mean: ``(B, T)`` mean reward of the source reward head on the target sequence (with gradient), or
+            the head's :class:`TwoHotSymlog` there.
         relabelled: ``(B, T)`` output of :func:`relabel_reward`; treated as a constant label.
 
     Returns:
         ``(B, T)`` negative log-likelihood up to its constant.
     """
+    if isinstance(pred_mean, TwoHotSymlog):
+        _check_same_shape(pred_mean=pred_mean.logits[..., 0], relabelled=relabelled)
+        return -pred_mean.log_prob(relabelled.detach())
     _check_same_shape(pred_mean=pred_mean, relabelled=relabelled)
     return 0.5 * (pred_mean - relabelled.detach()).square()
 

@@ -12,7 +12,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from coworld.models.distributions import Bernoulli, UnitGaussian, categorical_kl
+from coworld.models.distributions import Bernoulli, TwoHotSymlog, UnitGaussian, categorical_kl
 
 __all__ = [
     "actor_loss",
@@ -38,13 +38,20 @@ def image_loss(pred: UnitGaussian | Tensor, target: Tensor) -> Tensor:
     return 0.5 * squared.sum(dim=(-3, -2, -1))
 
 
-def reward_loss(pred: UnitGaussian | Tensor, target: Tensor) -> Tensor:
-    """Reward negative log-likelihood under a unit-variance Gaussian: ``0.5 * (pred - target)^2``.
+def reward_loss(pred: UnitGaussian | TwoHotSymlog | Tensor, target: Tensor) -> Tensor:
+    """Reward negative log-likelihood under a unit-variance Gaussian: ``0.5 * (pred - target)^2`` (or, for a
+    :class:`TwoHotSymlog` head, its cross-entropy against the target's two-hot encoding).
 
     ``pred`` is the reward head's output (a :class:`UnitGaussian`) or its mean, any shape ``(...)`` (``(B, T)``
     for sequences); ``target`` the same shape. Returns ``(...)``. Works for any features and any targets, e.g.
     CoWorld's relabelled source rewards on target features (Eqs. 4-5).
     """
+    if isinstance(pred, TwoHotSymlog):
+        if pred.logits.shape[:-1] != target.shape:
+            raise ValueError(
+                f"reward prediction {tuple(pred.logits.shape[:-1])} and target {tuple(target.shape)} differ in shape"
+            )
+        return -pred.log_prob(target.float())
     mean = pred.mean if isinstance(pred, UnitGaussian) else pred
     if mean.shape != target.shape:
         raise ValueError(f"reward prediction {tuple(mean.shape)} and target {tuple(target.shape)} differ in shape")
@@ -109,13 +116,17 @@ def lambda_return(reward: Tensor, value: Tensor, continuation: Tensor, bootstrap
     return torch.stack(returns[::-1], dim=0)
 
 
-def critic_loss(value: Tensor, target: Tensor, weight: Tensor) -> Tensor:
-    """Weighted critic regression to the lambda-returns: ``weight * 0.5 * (v - sg(R))^2``.
+def critic_loss(value: UnitGaussian | TwoHotSymlog | Tensor, target: Tensor, weight: Tensor) -> Tensor:
+    """Weighted critic regression to the lambda-returns: ``weight * 0.5 * (v - sg(R))^2`` (for a
+    :class:`TwoHotSymlog` critic, ``-weight * log p(sg(R))``).
 
-    ``value`` is the critic's mean on imagined states (with gradient), ``target`` the lambda-return, ``weight``
-    the cumulative discount of reaching the state; all ``(H, N)``. Returns ``(H, N)``.
+    ``value`` is the critic's mean on imagined states (with gradient) or its distribution, ``target`` the
+    lambda-return, ``weight`` the cumulative discount of reaching the state; all ``(H, N)``. Returns ``(H, N)``.
     """
-    return weight.detach() * 0.5 * (value - target.detach()).square()
+    if isinstance(value, TwoHotSymlog):
+        return -weight.detach() * value.log_prob(target.detach())
+    mean = value.mean if isinstance(value, UnitGaussian) else value
+    return weight.detach() * 0.5 * (mean - target.detach()).square()
 
 
 def actor_loss(

@@ -29,7 +29,15 @@ from torch import Tensor, nn
 from coworld.config import ActorCriticConfig
 from coworld.errors import ConfigError
 from coworld.losses.dreamer import actor_loss, critic_loss, lambda_return
-from coworld.models.distributions import Normal, TanhNormal, TruncatedNormal, UnitGaussian
+from coworld.models.distributions import (
+    TWOHOT_BINS,
+    Normal,
+    TanhNormal,
+    TruncatedNormal,
+    TwoHotSymlog,
+    UnitGaussian,
+    head_distribution,
+)
 from coworld.models.networks import MLP, frozen_parameters
 from coworld.models.rssm import State, stack_states
 from coworld.models.world_model import WorldModel
@@ -90,15 +98,17 @@ class Actor(nn.Module):
 
 
 class Critic(nn.Module):
-    """MLP value function: features ``(..., F)`` -> :class:`UnitGaussian` with mean ``(...)``."""
+    """MLP value function: features ``(..., F)`` -> :class:`UnitGaussian` (or :class:`TwoHotSymlog` with
+    ``dist='twohot'``) with mean ``(...)``."""
 
-    def __init__(self, *, feat_size: int, units: int, layers: int) -> None:
+    def __init__(self, *, feat_size: int, units: int, layers: int, dist: str = "gaussian") -> None:
         super().__init__()
-        self.mlp = MLP(in_size=feat_size, out_size=1, units=units, layers=layers)
+        self.dist = dist
+        self.mlp = MLP(in_size=feat_size, out_size=TWOHOT_BINS if dist == "twohot" else 1, units=units, layers=layers)
 
-    def forward(self, feat: Tensor) -> UnitGaussian:
+    def forward(self, feat: Tensor) -> UnitGaussian | TwoHotSymlog:
         """``(..., F)`` -> value distribution (mean ``(...)``, float32)."""
-        return UnitGaussian(self.mlp(feat).squeeze(-1).float())
+        return head_distribution(self.mlp(feat), self.dist)
 
 
 class ActorCritic(nn.Module):
@@ -124,7 +134,7 @@ class ActorCritic(nn.Module):
             min_std=config.actor_min_std,
             max_std=config.actor_max_std,
         )
-        self.critic = Critic(feat_size=feat_size, units=config.units, layers=config.layers)
+        self.critic = Critic(feat_size=feat_size, units=config.units, layers=config.layers, dist=config.critic_dist)
         if config.zero_init_critic:
             self.critic.mlp.zero_output()
         self.slow_critic = copy.deepcopy(self.critic)
@@ -240,9 +250,7 @@ class ActorCritic(nn.Module):
         else:  # the critic's own values: a gradient to the actor through ``feat``, none to the critic's weights
             with frozen_parameters(self.critic):
                 bootstrap_value = self.critic(feat).mean
-        target = lambda_return(
-            reward[:-1], bootstrap_value[:-1], continuation[:-1], bootstrap_value[-1], cfg.lambda_
-        )
+        target = lambda_return(reward[:-1], bootstrap_value[:-1], continuation[:-1], bootstrap_value[-1], cfg.lambda_)
 
         policy = self.actor(feat[:-2].detach())
         entropy = policy.entropy()
@@ -263,11 +271,12 @@ class ActorCritic(nn.Module):
             )
 
         critic_feat = feat[:-1].detach()
-        value = self.critic(critic_feat).mean
-        critic_terms = critic_loss(value, target, weight[:-1])
+        value_dist = self.critic(critic_feat)
+        value = value_dist.mean
+        critic_terms = critic_loss(value_dist, target, weight[:-1])
         metrics: dict[str, Tensor] = {}
         if cfg.slow_regulariser > 0.0:
-            critic_terms = critic_terms + cfg.slow_regulariser * critic_loss(value, slow_value[:-1], weight[:-1])
+            critic_terms = critic_terms + cfg.slow_regulariser * critic_loss(value_dist, slow_value[:-1], weight[:-1])
         if value_regulariser is not None:
             regulariser = value_regulariser(critic_feat, value)
             if regulariser.shape != value.shape:

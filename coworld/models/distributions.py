@@ -19,8 +19,13 @@ __all__ = [
     "OneHotCategorical",
     "TanhNormal",
     "TruncatedNormal",
+    "TWOHOT_BINS",
+    "TwoHotSymlog",
     "UnitGaussian",
+    "symexp",
+    "symlog",
     "categorical_kl",
+    "head_distribution",
 ]
 
 _LOG_SQRT_2PI = 0.5 * math.log(2.0 * math.pi)
@@ -50,6 +55,72 @@ class UnitGaussian:
         if self.event_dims:
             squared = squared.sum(dim=tuple(range(-self.event_dims, 0)))
         return -0.5 * squared
+
+
+def symlog(x: Tensor) -> Tensor:
+    """``sign(x) * log(1 + |x|)`` (DreamerV3)."""
+    return torch.sign(x) * torch.log1p(x.abs())
+
+
+def symexp(x: Tensor) -> Tensor:
+    """The inverse of :func:`symlog`: ``sign(x) * (exp(|x|) - 1)``."""
+    return torch.sign(x) * torch.expm1(x.abs())
+
+
+class TwoHotSymlog:
+    """A categorical over ``K`` bins evenly spaced in symlog space (DreamerV3's reward head and critic).
+
+    ``logits (..., K)``; the bins span ``[-20, 20]`` in symlog space (DreamerV3: 255 of them). ``mean`` is the
+    symexp of the expected bin, ``(...)``. ``log_prob(x)`` is the cross-entropy against the two-hot encoding of
+    ``symlog(x)``: the two neighbouring bins share the weight by distance, so the expected bin of the target
+    encoding is exactly ``symlog(x)`` (values beyond the bins go wholly to the outer bin).
+    """
+
+    LOW, HIGH = -20.0, 20.0
+
+    def __init__(self, logits: Tensor) -> None:
+        self.logits = logits.float()
+        self.bins = torch.linspace(self.LOW, self.HIGH, logits.shape[-1], device=logits.device)
+
+    @property
+    def mean(self) -> Tensor:
+        """``symexp(sum_k p_k b_k)``, shape ``(...)`` (differentiable in the logits)."""
+        return symexp((self.logits.softmax(-1) * self.bins).sum(-1))
+
+    @property
+    def mode(self) -> Tensor:
+        """The mean (DreamerV3 uses it for both)."""
+        return self.mean
+
+    def log_prob(self, value: Tensor) -> Tensor:
+        """``sum_k twohot(symlog(value))_k * log p_k``, shape ``(...)`` like ``value``."""
+        target = self.twohot(value)
+        return (target * self.logits.log_softmax(-1)).sum(-1)
+
+    def twohot(self, value: Tensor) -> Tensor:
+        """Two-hot encoding ``(..., K)`` of ``symlog(value)`` over the bins (no gradient)."""
+        x = symlog(value.detach().float()).clamp(self.LOW, self.HIGH)
+        k = self.bins.shape[0]
+        step = (self.HIGH - self.LOW) / (k - 1)
+        position = (x - self.LOW) / step
+        below = position.floor().clamp(0, k - 2)
+        upper_weight = (position - below).clamp(0.0, 1.0)
+        below_index = below.long()[..., None]
+        encoding = torch.zeros(*x.shape, k, device=x.device)
+        encoding.scatter_(-1, below_index, (1.0 - upper_weight)[..., None])
+        encoding.scatter_add_(-1, below_index + 1, upper_weight[..., None])
+        return encoding
+
+
+TWOHOT_BINS = 255
+"""Bins of a :class:`TwoHotSymlog` head (DreamerV3)."""
+
+
+def head_distribution(out: Tensor, dist: str) -> UnitGaussian | TwoHotSymlog:
+    """A scalar head's output ``(..., 1)`` or ``(..., TWOHOT_BINS)`` -> its distribution over ``(...)``."""
+    if dist == "twohot":
+        return TwoHotSymlog(out)
+    return UnitGaussian(out.squeeze(-1).float())
 
 
 class Bernoulli:

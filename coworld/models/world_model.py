@@ -19,7 +19,7 @@ from torch import Tensor, nn
 
 from coworld.config import WorldModelConfig
 from coworld.losses.dreamer import discount_loss, image_loss, kl_balanced_loss, reward_loss
-from coworld.models.distributions import Bernoulli, UnitGaussian
+from coworld.models.distributions import TWOHOT_BINS, Bernoulli, TwoHotSymlog, UnitGaussian, head_distribution
 from coworld.models.networks import MLP, ConvDecoder, ConvEncoder, check_image_shape
 from coworld.models.rssm import RSSM, State
 
@@ -36,19 +36,21 @@ def preprocess_image(image: Tensor) -> Tensor:
 
 
 class RewardHead(nn.Module):
-    """MLP from features ``(..., F)`` to a :class:`UnitGaussian` over the reward, batch ``(...)``.
+    """MLP from features ``(..., F)`` to a :class:`UnitGaussian` (or, with ``dist='twohot'``, a
+    :class:`TwoHotSymlog`) over the reward, batch ``(...)``.
 
     ``reward_head(feat).mean`` is the predicted reward ``(...)`` (float32); pass the distribution (or its mean)
     and any target to :func:`coworld.losses.dreamer.reward_loss` for the negative log-likelihood.
     """
 
-    def __init__(self, *, feat_size: int, units: int, layers: int) -> None:
+    def __init__(self, *, feat_size: int, units: int, layers: int, dist: str = "gaussian") -> None:
         super().__init__()
-        self.mlp = MLP(in_size=feat_size, out_size=1, units=units, layers=layers)
+        self.dist = dist
+        self.mlp = MLP(in_size=feat_size, out_size=TWOHOT_BINS if dist == "twohot" else 1, units=units, layers=layers)
 
-    def forward(self, feat: Tensor) -> UnitGaussian:
+    def forward(self, feat: Tensor) -> UnitGaussian | TwoHotSymlog:
         """``(..., F)`` -> reward distribution with mean ``(...)``."""
-        return UnitGaussian(self.mlp(feat).squeeze(-1).float())
+        return head_distribution(self.mlp(feat), self.dist)
 
 
 class DiscountHead(nn.Module):
@@ -91,7 +93,9 @@ class WorldModel(nn.Module):
         self.feat_size = self.rssm.feat_size
         """Length of the features ``D + S * K``."""
         self.decoder = ConvDecoder(feat_size=self.feat_size, channels=channels, depth=config.cnn_depth)
-        self.reward_head = RewardHead(feat_size=self.feat_size, units=config.mlp_units, layers=config.mlp_layers)
+        self.reward_head = RewardHead(
+            feat_size=self.feat_size, units=config.mlp_units, layers=config.mlp_layers, dist=config.reward_dist
+        )
         if config.zero_init_reward:
             self.reward_head.mlp.zero_output()
         self.discount_head: DiscountHead | None = (

@@ -264,3 +264,19 @@ def test_eq6_rejects_bad_scales_and_shapes() -> None:
         regularised_critic_loss(v, v, v[:, :1], alpha=0.2, zeta=1.0)
     with pytest.raises(ValueError, match="one shape"):
         regularised_critic_loss(v, v, v, alpha=0.2, zeta=1.0, weight=v[:1])
+
+
+def test_source_reward_loss_of_a_twohot_head_is_its_cross_entropy_of_the_label() -> None:
+    from coworld.models.distributions import TWOHOT_BINS, TwoHotSymlog
+
+    torch.manual_seed(0)
+    logits = torch.randn(2, 3, TWOHOT_BINS, requires_grad=True)
+    head = TwoHotSymlog(logits)
+    label = relabel_reward(head.mean, torch.rand(2, 3), 0.3)
+    loss = source_reward_loss_on_target(head, label)
+    torch.testing.assert_close(loss, -head.log_prob(label))
+    assert loss.shape == (2, 3) and float(loss.min()) > 0
+    loss.sum().backward()
+    assert logits.grad is not None and float(logits.grad.abs().sum()) > 0
+    with pytest.raises(ValueError):
+        source_reward_loss_on_target(head, torch.zeros(2, 4))

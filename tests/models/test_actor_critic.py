@@ -316,7 +316,9 @@ def test_critic_target_critic_bootstraps_from_the_critic_without_training_it_thr
     expected = lambda_return(traj["reward"][:-1], value[:-1], traj["continuation"][:-1], value[-1], config.lambda_)
     torch.testing.assert_close(terms["target"].detach(), expected)
     slow = ac.slow_critic(traj["feat"]).mean.detach()
-    assert not torch.allclose(expected, lambda_return(traj["reward"][:-1], slow[:-1], traj["continuation"][:-1], slow[-1], config.lambda_))
+    assert not torch.allclose(
+        expected, lambda_return(traj["reward"][:-1], slow[:-1], traj["continuation"][:-1], slow[-1], config.lambda_)
+    )
     terms["actor"].backward()
     assert all(p.grad is None for p in ac.critic.parameters())  # the actor's loss does not move the critic
 
@@ -352,3 +354,25 @@ def test_slow_regulariser_adds_the_weighted_distance_to_the_slow_critic(tiny: Co
     extra = 0.5 * traj["weight"][:-1] * 0.5 * (value - slow) ** 2
     assert float(extra.abs().sum()) > 0
     torch.testing.assert_close(terms_reg["critic_terms"].detach(), terms_plain["critic_terms"].detach() + extra)
+
+
+def test_twohot_reward_head_and_critic_train_by_cross_entropy(tiny: Config) -> None:
+    from coworld.models.distributions import TWOHOT_BINS, TwoHotSymlog
+
+    torch.manual_seed(0)
+    wm_config = dataclasses.replace(tiny.world_model, reward_dist="twohot", zero_init_reward=True)
+    ac_config = dataclasses.replace(tiny.actor_critic, critic_dist="twohot", zero_init_critic=True)
+    config = dataclasses.replace(tiny, world_model=wm_config, actor_critic=ac_config)
+    wm, ac, start = _setup(config)
+    feat = torch.randn(4, wm.feat_size)
+    head = wm.reward_head(feat)
+    assert isinstance(head, TwoHotSymlog) and head.logits.shape == (4, TWOHOT_BINS)
+    torch.testing.assert_close(head.mean, torch.zeros(4), atol=1e-5, rtol=0)  # zero init: uniform, mean 0
+    terms, _ = wm.loss(random_batch(batch=2, length=3))
+    assert float(terms["reward"].mean()) == pytest.approx(math.log(TWOHOT_BINS), rel=1e-4)
+    with frozen_parameters(wm):
+        traj = ac.imagine(wm, start)
+        losses, _ = ac.losses(wm, traj)
+    dist = ac.critic(traj["feat"][:-1].detach())
+    expected = -(traj["weight"][:-1] * dist.log_prob(losses["target"].detach())).mean()
+    torch.testing.assert_close(losses["critic"], expected)

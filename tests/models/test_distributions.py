@@ -94,3 +94,50 @@ def test_tanh_normal_density_integrates_to_one_and_matches_samples() -> None:
     numeric_mean = float((density * x[::20]).sum() * dx * 20)
     assert abs(float(samples.mean()) - numeric_mean) < 0.02
     assert math.isfinite(float(big.entropy().mean()))
+
+
+def test_symlog_and_symexp_invert_each_other() -> None:
+    from coworld.models.distributions import symexp, symlog
+
+    x = torch.tensor([-1e6, -3.0, -0.5, 0.0, 0.5, 3.0, 1e6], dtype=torch.float64)
+    torch.testing.assert_close(symexp(symlog(x)), x)
+    torch.testing.assert_close(symlog(torch.tensor([math.e - 1.0, -(math.e - 1.0)])), torch.tensor([1.0, -1.0]))
+
+
+def test_twohot_encoding_splits_by_distance_and_its_expected_bin_is_the_symlog() -> None:
+    from coworld.models.distributions import TWOHOT_BINS, TwoHotSymlog, symlog
+
+    dist = TwoHotSymlog(torch.zeros(5, TWOHOT_BINS))
+    value = torch.tensor([0.0, 0.3, -7.0, 123.0, 1e12])
+    encoding = dist.twohot(value)
+    assert encoding.shape == (5, TWOHOT_BINS)
+    torch.testing.assert_close(encoding.sum(-1), torch.ones(5))
+    assert int((encoding > 0).sum(-1).max()) <= 2  # two neighbouring bins at most
+    inside = symlog(value[:4])
+    torch.testing.assert_close((encoding[:4] * dist.bins).sum(-1), inside, atol=1e-5, rtol=0)
+    assert float(encoding[4, -1]) == 1.0  # beyond the last bin: all on it
+    # Bins are 40 / 254 apart: 0 sits on the middle bin exactly.
+    assert float(encoding[0, TWOHOT_BINS // 2]) == 1.0
+
+
+def test_twohot_mean_and_log_prob_known_answers() -> None:
+    from coworld.models.distributions import TWOHOT_BINS, TwoHotSymlog
+
+    uniform = TwoHotSymlog(torch.zeros(3, TWOHOT_BINS))
+    torch.testing.assert_close(uniform.mean, torch.zeros(3), atol=1e-5, rtol=0)  # symmetric bins: symexp(0)
+    torch.testing.assert_close(
+        uniform.log_prob(torch.tensor([0.0, 5.0, -2.0])), torch.full((3,), -math.log(TWOHOT_BINS))
+    )
+    # Logits that put (almost) all mass on the encoding of a value recover it as the mean.
+    value = torch.tensor([4.2, -0.7])
+    peaked = TwoHotSymlog(torch.log(TwoHotSymlog(torch.zeros(2, TWOHOT_BINS)).twohot(value) + 1e-12))
+    torch.testing.assert_close(peaked.mean, value, atol=1e-3, rtol=1e-4)
+    assert float(peaked.log_prob(value).min()) > float(peaked.log_prob(value + 3.0).max())
+    # Training the logits by the log-likelihood moves the mean to the target.
+    logits = torch.zeros(1, TWOHOT_BINS, requires_grad=True)
+    opt = torch.optim.Adam([logits], lr=0.1)
+    for _ in range(300):
+        opt.zero_grad()
+        (-TwoHotSymlog(logits).log_prob(torch.tensor([30.0]))).sum().backward()
+        opt.step()
+    assert abs(float(TwoHotSymlog(logits).mean) - 30.0) < 1.0  # from 0
