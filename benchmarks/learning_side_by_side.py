@@ -146,23 +146,42 @@ def read_curve(folder: Path, agent: str, started: float) -> list[tuple[int, floa
     else:
         path = folder / "metrics.jsonl"
         key, step_key = "eval_return", "step"
+    # Wall-clock of each evaluation: ours logs seconds since its start ("time"); the reference logs none, so its
+    # evaluation k ends when the last episode file of its k-th group of evaluation episodes was written.
+    eval_files = sorted((folder / "eval_eps").glob("*.npz"), key=lambda file: file.stat().st_mtime)
     for line in path.read_text().splitlines():
         record = json.loads(line)
         if key in record:
-            wall = record.get("time", record.get("wall", started)) - started if "time" in record else float("nan")
+            if agent == "ours":
+                wall = float(record["time"])
+            else:
+                last = (len(points) + 1) * int(record.get("eval_episodes", 1)) - 1
+                wall = eval_files[last].stat().st_mtime - started if last < len(eval_files) else float("nan")
             points.append((int(record[step_key]), float(record[key]), wall))
     return points
 
 
+def started_at(folder: Path, agent: str) -> float:
+    """When a finished run began: the modification time of the first file it wrote (our config.json, the
+    reference's driver.py)."""
+    first = folder / "data.run" / "config.json" if agent == "ours" else folder / "driver.py"
+    return first.stat().st_mtime
+
+
 def summarise(curves: dict[str, dict[int, list[tuple[int, float, float]]]]) -> str:
-    rows = ["| agent | env steps | median return | mean ± std | seeds |", "|---|---|---|---|---|"]
+    rows = [
+        "| agent | env steps | median return | mean ± std | per seed | median wall-clock (s) |",
+        "|---|---|---|---|---|---|",
+    ]
     for agent, by_seed in curves.items():
         steps = sorted({step for points in by_seed.values() for step, _, _ in points})
         for step in steps:
             values = [ret for points in by_seed.values() for s, ret, _ in points if s == step]
+            walls = [wall for points in by_seed.values() for s, _, wall in points if s == step]
+            each = " / ".join(f"{value:.1f}" for value in values)
             rows.append(
                 f"| {agent} | {step:,} | {np.median(values):.1f} | {np.mean(values):.1f} ± {np.std(values):.1f} |"
-                f" {len(values)} |"
+                f" {each} | {np.median(walls):.0f} |"
             )
     return "\n".join(rows)
 
@@ -178,12 +197,23 @@ def main() -> None:
     parser.add_argument("--reference-python", default=sys.executable)
     parser.add_argument("--set", action="append", default=[], help="Override of our config (key=value).")
     parser.add_argument("--skip-ours", action="store_true")
+    parser.add_argument(
+        "--read-only",
+        action="store_true",
+        help="Run nothing: summarise the <agent>-s<seed> folders already under --out (wall-clock from file times).",
+    )
     args = parser.parse_args()
     agents = ([] if args.skip_ours else ["ours"]) + (["reference"] if args.reference else [])
+    if args.read_only:
+        agents = [a for a in ("ours", "reference") if any((args.out / f"{a}-s{s}").is_dir() for s in args.seeds)]
     curves: dict[str, dict[int, list[tuple[int, float, float]]]] = {agent: {} for agent in agents}
     for seed in args.seeds:
         for agent in agents:
             folder = args.out / f"{agent}-s{seed}"
+            if args.read_only:
+                if folder.is_dir():
+                    curves[agent][seed] = read_curve(folder, agent, started_at(folder, agent))
+                continue
             started = time.time()
             if agent == "ours":
                 run_ours(args.task, seed, args.steps, args.episodes, folder, args.set)
