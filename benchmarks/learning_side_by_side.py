@@ -186,6 +186,38 @@ def summarise(curves: dict[str, dict[int, list[tuple[int, float, float]]]]) -> s
     return "\n".join(rows)
 
 
+def plot(curves: dict[str, dict[int, list[tuple[int, float, float]]]], path: Path) -> None:
+    """Return against env steps and against wall-clock seconds, mean +- std over seeds per agent."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    figure, axes = plt.subplots(1, 2, figsize=(10, 3.6), sharey=True)
+    for agent, by_seed in curves.items():
+        steps = sorted({step for points in by_seed.values() for step, _, _ in points})
+        mean, std, wall = [], [], []
+        for step in steps:
+            rows = [(ret, w) for points in by_seed.values() for s, ret, w in points if s == step]
+            mean.append(np.mean([ret for ret, _ in rows]))
+            std.append(np.std([ret for ret, _ in rows]))
+            wall.append(np.nanmean([w for _, w in rows]))
+        mean_a, std_a = np.array(mean), np.array(std)
+        label = f"{agent} ({len(by_seed)} seeds)"
+        for axis, x in ((axes[0], np.array(steps)), (axes[1], np.array(wall))):
+            axis.plot(x, mean_a, marker="o", label=label)
+            axis.fill_between(x, mean_a - std_a, mean_a + std_a, alpha=0.2)
+    axes[0].set_xlabel("env steps")
+    axes[1].set_xlabel("wall-clock seconds (mean over seeds)")
+    axes[0].set_ylabel("evaluation return")
+    axes[0].legend()
+    for axis in axes:
+        axis.grid(alpha=0.3)
+    figure.tight_layout()
+    figure.savefig(path, dpi=120)
+    plt.close(figure)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--out", type=Path, required=True)
@@ -225,6 +257,10 @@ def main() -> None:
             )
     (args.out / "curves.json").write_text(json.dumps(curves, indent=1))
     print(summarise(curves))
+    try:
+        plot(curves, args.out / "curves.png")
+    except ImportError:
+        print("matplotlib is not installed: no curves.png (pip install -e '.[report]')")
 
 
 if __name__ == "__main__":
