@@ -224,6 +224,10 @@ class TrainConfig:
     """Environment steps between checkpoints."""
     envs: Annotated[int, Range(1, 256)] = 1
     """Parallel training environments (worker processes when > 1)."""
+    actor_warmup: Annotated[int, NON_NEGATIVE] = 0
+    """Updates that train the world model alone before the actor and critic start learning (0: from the first).
+    Until then the agent acts with its untrained actor's wide spread, so the data stay varied while the model
+    learns the scene."""
     expl_noise: Annotated[float, NON_NEGATIVE] = 0.0
     """Extra Gaussian noise on training actions."""
 

@@ -166,10 +166,12 @@ class DreamerV2:
         return out
 
     def train(self, batch: Mapping[str, np.ndarray | Tensor]) -> dict[str, float]:
-        """One world-model update and one actor-critic update in imagination; returns namespaced metrics."""
+        """One world-model update and one actor-critic update in imagination (the latter only once
+        ``train.actor_warmup`` updates are done); returns namespaced metrics."""
         batch_t = self.to_batch(batch)
         metrics, post = self.train_world_model(batch_t)
-        metrics.update(self.train_actor_critic(post, is_terminal=batch_t["is_terminal"]))
+        if self.updates >= self.config.train.actor_warmup:
+            metrics.update(self.train_actor_critic(post, is_terminal=batch_t["is_terminal"]))
         self.updates += 1
         return metrics
 

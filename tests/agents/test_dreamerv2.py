@@ -49,6 +49,24 @@ def _params(module: torch.nn.Module) -> torch.Tensor:
     return torch.cat([p.detach().flatten() for p in module.parameters()]).clone()
 
 
+def test_actor_warmup_trains_the_world_model_alone_first(tiny: Config) -> None:
+    config = make_config("tiny", {"device": "cpu", "train.actor_warmup": 2})
+    agent = DreamerV2(config=config, action_size=ACTION_SIZE)
+    actor, critic, model = (
+        _params(m) for m in (agent.actor_critic.actor, agent.actor_critic.critic, agent.world_model)
+    )
+    for step in range(2):
+        metrics = agent.train(numpy_batch(seed=step))
+        assert "actor/loss" not in metrics and "wm/loss" in metrics
+    assert torch.equal(_params(agent.actor_critic.actor), actor) and torch.equal(
+        _params(agent.actor_critic.critic), critic
+    )
+    assert not torch.equal(_params(agent.world_model), model)
+    assert "actor/loss" in agent.train(numpy_batch(seed=2))  # the third update trains the actor too
+    assert not torch.equal(_params(agent.actor_critic.actor), actor)
+    assert agent.updates == 3 and int(agent.actor_critic.updates) == 1
+
+
 def test_to_batch_keeps_uint8_images_and_casts_floats(tiny: Config) -> None:
     agent = DreamerV2(config=tiny, action_size=ACTION_SIZE)
     batch = agent.to_batch(numpy_batch())
