@@ -97,6 +97,10 @@ class WorldModelConfig:
     """Units per layer of the reward and discount heads."""
     mlp_layers: Annotated[int, NON_NEGATIVE] = 4
     """Layers of the reward and discount heads."""
+    mlp_norm: bool = False
+    """LayerNorm after each hidden layer of the reward and discount heads (DreamerV3; DreamerV2: none)."""
+    mlp_act: Annotated[str, OneOf(("elu", "silu"))] = "elu"
+    """Hidden activation of the reward and discount heads: 'elu' (DreamerV2) or 'silu' (DreamerV3)."""
     kl_scale: Annotated[float, NON_NEGATIVE] = 1.0
     """beta1 in Eq. 3: weight of KL[posterior || prior]."""
     kl_balance: Annotated[float, UNIT] = 0.8
@@ -140,6 +144,12 @@ class ActorCriticConfig:
     """Units per MLP layer of actor and critic."""
     layers: Annotated[int, NON_NEGATIVE] = 4
     """MLP layers of actor and critic."""
+    mlp_norm: bool = False
+    """LayerNorm after each hidden layer of actor and critic (DreamerV3; DreamerV2's DMC config: none). It takes out
+    what a hidden layer's output has in common over all states, so the output layer learns from what tells states
+    apart rather than only moving its bias."""
+    mlp_act: Annotated[str, OneOf(("elu", "silu"))] = "elu"
+    """Hidden activation of actor and critic: 'elu' (DreamerV2) or 'silu' (DreamerV3)."""
     horizon: Annotated[int, Range(2)] = 15
     """Imagination horizon H (Table 3)."""
     discount: Annotated[float, Range(0, 1, low_open=True)] = 0.995

@@ -30,19 +30,15 @@ from coworld.config import ActorCriticConfig
 from coworld.errors import ConfigError
 from coworld.losses.dreamer import actor_loss, critic_loss, lambda_return
 from coworld.models.distributions import (
-    TWOHOT_BINS,
     Normal,
     TanhNormal,
     TruncatedNormal,
-    TwoHotSymlog,
-    UnitGaussian,
-    head_distribution,
 )
 from coworld.models.networks import MLP, frozen_parameters
 from coworld.models.rssm import State, stack_states
-from coworld.models.world_model import WorldModel
+from coworld.models.world_model import ScalarHead, WorldModel
 
-__all__ = ["Actor", "ActorCritic", "Critic", "ValueRegulariser", "flatten_states"]
+__all__ = ["Actor", "ActorCritic", "ValueRegulariser", "flatten_states"]
 
 ValueRegulariser = Callable[[Tensor, Tensor], Tensor]
 """``(feat (H, N, F), value (H, N)) -> (H, N)``: an extra per-state critic loss (CoWorld's Eq. 6 term)."""
@@ -77,6 +73,8 @@ class Actor(nn.Module):
         dist: str,
         min_std: float,
         max_std: float = 1.0,
+        norm: bool = False,
+        act: str = "elu",
     ) -> None:
         super().__init__()
         if dist not in ACTOR_DISTS:
@@ -84,7 +82,7 @@ class Actor(nn.Module):
         self.dist = dist
         self.min_std = min_std
         self.max_std = max_std
-        self.mlp = MLP(in_size=feat_size, out_size=2 * action_size, units=units, layers=layers)
+        self.mlp = MLP(in_size=feat_size, out_size=2 * action_size, units=units, layers=layers, norm=norm, act=act)
 
     def forward(self, feat: Tensor) -> TruncatedNormal | TanhNormal | Normal:
         """``(..., F)`` -> action distribution, event ``(A,)``."""
@@ -95,20 +93,6 @@ class Actor(nn.Module):
             spread = (self.max_std - self.min_std) * torch.sigmoid(std + 2.0) + self.min_std
             return Normal(torch.tanh(mean), spread)
         return TanhNormal(mean, F.softplus(std + math.log(math.e - 1.0)) + self.min_std)
-
-
-class Critic(nn.Module):
-    """MLP value function: features ``(..., F)`` -> :class:`UnitGaussian` (or :class:`TwoHotSymlog` with
-    ``dist='twohot'``) with mean ``(...)``."""
-
-    def __init__(self, *, feat_size: int, units: int, layers: int, dist: str = "gaussian") -> None:
-        super().__init__()
-        self.dist = dist
-        self.mlp = MLP(in_size=feat_size, out_size=TWOHOT_BINS if dist == "twohot" else 1, units=units, layers=layers)
-
-    def forward(self, feat: Tensor) -> UnitGaussian | TwoHotSymlog:
-        """``(..., F)`` -> value distribution (mean ``(...)``, float32)."""
-        return head_distribution(self.mlp(feat), self.dist)
 
 
 class ActorCritic(nn.Module):
@@ -125,16 +109,16 @@ class ActorCritic(nn.Module):
             )
         self.config = config
         self.action_size = action_size
+        mlp = {"units": config.units, "layers": config.layers, "norm": config.mlp_norm, "act": config.mlp_act}
         self.actor = Actor(
             feat_size=feat_size,
             action_size=action_size,
-            units=config.units,
-            layers=config.layers,
             dist=config.actor_dist,
             min_std=config.actor_min_std,
             max_std=config.actor_max_std,
+            **mlp,
         )
-        self.critic = Critic(feat_size=feat_size, units=config.units, layers=config.layers, dist=config.critic_dist)
+        self.critic = ScalarHead(feat_size=feat_size, dist=config.critic_dist, **mlp)
         if config.zero_init_critic:
             self.critic.mlp.zero_output()
         self.slow_critic = copy.deepcopy(self.critic)

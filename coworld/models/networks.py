@@ -5,7 +5,8 @@
 * :class:`ConvDecoder`: dense layer to ``32d`` channels at 1 x 1, then 4 transposed convs (kernels 5, 5, 6, 6,
   stride 2; channels ``4d, 2d, d, C``) back to 64 x 64: the mean of a unit-variance Gaussian over pixels. They
   run as :func:`conv_transpose_stride2` (the same function as ``nn.ConvTranspose2d``, 2-3x faster on a CPU).
-* :class:`MLP`: ELU multilayer perceptron used by the heads, the actor and the critic.
+* :class:`MLP`: ELU multilayer perceptron used by the heads, the actor and the critic (optionally DreamerV3's
+  LayerNorm + SiLU).
 * :class:`LayerNormGRUCell`: DreamerV2's GRU cell with layer normalisation and update bias -1.
 
 Weights are initialised Glorot-uniform with zero biases (the Keras defaults DreamerV2 was tuned with).
@@ -20,7 +21,10 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from coworld.errors import CoworldError
+from coworld.errors import ConfigError, CoworldError
+
+MLP_ACTS: dict[str, type[nn.Module]] = {"elu": nn.ELU, "silu": nn.SiLU}
+"""Hidden-layer activations of :class:`MLP` by name."""
 
 __all__ = [
     "ConvDecoder",
@@ -161,14 +165,26 @@ class ConvDecoder(nn.Module):
 
 
 class MLP(nn.Module):
-    """``layers`` ELU hidden layers of ``units``, then a linear layer: ``(..., in_size)`` -> ``(..., out_size)``."""
+    """``layers`` hidden layers of ``units``, then a linear layer: ``(..., in_size)`` -> ``(..., out_size)``.
 
-    def __init__(self, *, in_size: int, out_size: int, units: int, layers: int) -> None:
+    Each hidden layer is ``Linear -> act`` (DreamerV2: ELU), or with ``norm`` ``Linear -> LayerNorm -> act``
+    (DreamerV3, with ``act='silu'``); ``norm`` removes the part of a hidden layer's output common to all inputs,
+    so the layer after it learns from what tells inputs apart.
+    """
+
+    def __init__(
+        self, *, in_size: int, out_size: int, units: int, layers: int, norm: bool = False, act: str = "elu"
+    ) -> None:
         super().__init__()
+        if act not in MLP_ACTS:
+            raise ConfigError(f"unknown MLP activation {act!r}; choose one of: {', '.join(MLP_ACTS)}")
         modules: list[nn.Module] = []
         size = in_size
         for _ in range(layers):
-            modules += [nn.Linear(size, units), nn.ELU()]
+            modules.append(nn.Linear(size, units))
+            if norm:
+                modules.append(nn.LayerNorm(units, eps=1e-3))
+            modules.append(MLP_ACTS[act]())
             size = units
         modules.append(nn.Linear(size, out_size))
         self.net = nn.Sequential(*modules)

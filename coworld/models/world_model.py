@@ -23,7 +23,7 @@ from coworld.models.distributions import TWOHOT_BINS, Bernoulli, TwoHotSymlog, U
 from coworld.models.networks import MLP, ConvDecoder, ConvEncoder, check_image_shape
 from coworld.models.rssm import RSSM, State
 
-__all__ = ["DiscountHead", "RewardHead", "WorldModel", "preprocess_image"]
+__all__ = ["DiscountHead", "ScalarHead", "WorldModel", "preprocess_image"]
 
 
 def preprocess_image(image: Tensor) -> Tensor:
@@ -35,21 +35,24 @@ def preprocess_image(image: Tensor) -> Tensor:
     return image.movedim(-1, -3).to(torch.float32, copy=True).div_(255.0).sub_(0.5)
 
 
-class RewardHead(nn.Module):
-    """MLP from features ``(..., F)`` to a :class:`UnitGaussian` (or, with ``dist='twohot'``, a
-    :class:`TwoHotSymlog`) over the reward, batch ``(...)``.
+class ScalarHead(nn.Module):
+    """MLP from features ``(..., F)`` to a distribution over one number per state: a :class:`UnitGaussian` or, with
+    ``dist='twohot'``, a :class:`TwoHotSymlog`. The world model's reward head and the critic are both one.
 
-    ``reward_head(feat).mean`` is the predicted reward ``(...)`` (float32); pass the distribution (or its mean)
-    and any target to :func:`coworld.losses.dreamer.reward_loss` for the negative log-likelihood.
+    ``head(feat).mean`` is the prediction ``(...)`` (float32); pass the distribution and a target to
+    :func:`coworld.losses.dreamer.reward_loss` or :func:`~coworld.losses.dreamer.critic_loss`.
     """
 
-    def __init__(self, *, feat_size: int, units: int, layers: int, dist: str = "gaussian") -> None:
+    def __init__(
+        self, *, feat_size: int, units: int, layers: int, dist: str = "gaussian", norm: bool = False, act: str = "elu"
+    ) -> None:
         super().__init__()
         self.dist = dist
-        self.mlp = MLP(in_size=feat_size, out_size=TWOHOT_BINS if dist == "twohot" else 1, units=units, layers=layers)
+        out_size = TWOHOT_BINS if dist == "twohot" else 1
+        self.mlp = MLP(in_size=feat_size, out_size=out_size, units=units, layers=layers, norm=norm, act=act)
 
     def forward(self, feat: Tensor) -> UnitGaussian | TwoHotSymlog:
-        """``(..., F)`` -> reward distribution with mean ``(...)``."""
+        """``(..., F)`` -> distribution with mean ``(...)``."""
         return head_distribution(self.mlp(feat), self.dist)
 
 
@@ -59,9 +62,9 @@ class DiscountHead(nn.Module):
     ``discount_head(feat).mean`` is the predicted probability that the episode continues, ``(...)``.
     """
 
-    def __init__(self, *, feat_size: int, units: int, layers: int) -> None:
+    def __init__(self, *, feat_size: int, units: int, layers: int, norm: bool = False, act: str = "elu") -> None:
         super().__init__()
-        self.mlp = MLP(in_size=feat_size, out_size=1, units=units, layers=layers)
+        self.mlp = MLP(in_size=feat_size, out_size=1, units=units, layers=layers, norm=norm, act=act)
 
     def forward(self, feat: Tensor) -> Bernoulli:
         """``(..., F)`` -> continuation distribution, batch ``(...)``."""
@@ -93,15 +96,12 @@ class WorldModel(nn.Module):
         self.feat_size = self.rssm.feat_size
         """Length of the features ``D + S * K``."""
         self.decoder = ConvDecoder(feat_size=self.feat_size, channels=channels, depth=config.cnn_depth)
-        self.reward_head = RewardHead(
-            feat_size=self.feat_size, units=config.mlp_units, layers=config.mlp_layers, dist=config.reward_dist
-        )
+        head = {"units": config.mlp_units, "layers": config.mlp_layers, "norm": config.mlp_norm, "act": config.mlp_act}
+        self.reward_head = ScalarHead(feat_size=self.feat_size, dist=config.reward_dist, **head)
         if config.zero_init_reward:
             self.reward_head.mlp.zero_output()
         self.discount_head: DiscountHead | None = (
-            DiscountHead(feat_size=self.feat_size, units=config.mlp_units, layers=config.mlp_layers)
-            if config.pred_discount
-            else None
+            DiscountHead(feat_size=self.feat_size, **head) if config.pred_discount else None
         )
 
     def encode(self, image: Tensor) -> Tensor:

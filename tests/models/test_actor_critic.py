@@ -8,7 +8,7 @@ import math
 import pytest
 import torch
 
-from coworld.config import Config
+from coworld.config import Config, make_config
 from coworld.errors import ConfigError
 from coworld.losses.dreamer import lambda_return
 from coworld.models.actor_critic import ActorCritic, flatten_states
@@ -376,3 +376,26 @@ def test_twohot_reward_head_and_critic_train_by_cross_entropy(tiny: Config) -> N
     dist = ac.critic(traj["feat"][:-1].detach())
     expected = -(traj["weight"][:-1] * dist.log_prob(losses["target"].detach())).mean()
     torch.testing.assert_close(losses["critic"], expected)
+
+
+def test_mlp_norm_and_act_reach_actor_critic_and_world_model_heads(tiny: Config) -> None:
+    config = make_config(
+        "tiny",
+        overrides={
+            "actor_critic.mlp_norm": True,
+            "actor_critic.mlp_act": "silu",
+            "world_model.mlp_norm": True,
+            "world_model.mlp_act": "silu",
+            "world_model.pred_discount": True,
+        },
+    )
+    wm, ac, start = _setup(config)
+    for head in (ac.actor.mlp, ac.critic.mlp, ac.slow_critic.mlp, wm.reward_head.mlp, wm.discount_head.mlp):
+        kinds = {type(m) for m in head.modules()}
+        assert torch.nn.LayerNorm in kinds and torch.nn.SiLU in kinds and torch.nn.ELU not in kinds
+    plain_wm, plain_ac, _ = _setup(tiny)
+    assert not any(isinstance(m, torch.nn.LayerNorm) for m in plain_ac.modules())
+    assert not any(isinstance(m, torch.nn.LayerNorm) for m in plain_wm.reward_head.modules())
+    traj = ac.imagine(wm, start)
+    terms, _ = ac.losses(wm, traj)
+    assert torch.isfinite(terms["actor"]) and torch.isfinite(terms["critic"])

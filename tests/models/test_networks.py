@@ -44,6 +44,21 @@ def test_mlp_shape_and_depth() -> None:
     assert sum(isinstance(m, torch.nn.Linear) for m in mlp.modules()) == 4
 
 
+def test_mlp_norm_centres_and_scales_each_hidden_layer() -> None:
+    mlp = MLP(in_size=7, out_size=2, units=16, layers=2, norm=True, act="silu")
+    hidden = mlp.net[:-1]
+    assert [type(m) for m in hidden] == [torch.nn.Linear, torch.nn.LayerNorm, torch.nn.SiLU] * 2
+    # Inputs that share a large common part: after the first Linear + LayerNorm, each row has mean 0, std 1.
+    x = torch.randn(32, 7) * 0.01 + 5.0
+    normed = hidden[1](hidden[0](x))
+    torch.testing.assert_close(normed.mean(-1), torch.zeros(32), atol=1e-5, rtol=0)
+    torch.testing.assert_close(normed.std(-1, unbiased=False), torch.ones(32), atol=2e-2, rtol=0)
+    plain = MLP(in_size=7, out_size=2, units=16, layers=2)
+    assert not any(isinstance(m, torch.nn.LayerNorm | torch.nn.SiLU) for m in plain.modules())
+    with pytest.raises(CoworldError, match="unknown MLP activation 'relu'"):
+        MLP(in_size=7, out_size=2, units=16, layers=2, act="relu")
+
+
 def test_gru_cell_shape_and_convex_update() -> None:
     cell = LayerNormGRUCell(in_size=5, size=8)
     h = torch.randn(3, 8)
