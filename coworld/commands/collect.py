@@ -139,7 +139,12 @@ COLLECTORS: dict[str, Callable[[dict[str, Any]], None]] = {
     help="dreamerv2 only: medium-replay (all it experienced while learning; default) or episodes of the"
     " trained policy (medium, expert; --episodes of them).",
 )
-@click.option("--preset", default="paper", show_default=True, help="dreamerv2 only: tiny (CPU) or paper.")
+@click.option(
+    "--preset",
+    default="paper",
+    show_default=True,
+    help="dreamerv2 only: paper (Table 3, GPU), cpu (learning on 2 cores) or tiny (CPU minutes, tests).",
+)
 @click.option(
     "--stop-return",
     type=Number(-1e9, 1e9),

@@ -29,7 +29,12 @@ RESUME = "rerun the same command to resume"
     help="Target dataset; default datasets/<target>-medium_replay.h5.",
 )
 @click.option("--algo", type=click.Choice(ALGOS), default="coworld", show_default=True)
-@click.option("--preset", default="paper", show_default=True, help="tiny (CPU minutes) or paper (Table 3, GPU).")
+@click.option(
+    "--preset",
+    default="paper",
+    show_default=True,
+    help="paper (Table 3, GPU), cpu (learning on 2 cores) or tiny (CPU minutes, tests).",
+)
 @click.option(
     "--logdir",
     type=output_folder(),

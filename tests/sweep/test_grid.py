@@ -6,6 +6,7 @@ import json
 
 import pytest
 
+from coworld.config import make_config
 from coworld.errors import ConfigError, CoworldError, UnknownTaskError
 from coworld.sweep.grid import (
     ABLATION,
@@ -60,6 +61,18 @@ def test_toy_table_has_every_algorithm_three_seeds_and_a_random_target_dataset()
     for algo in ("coworld", "dreamerv2", "curl", "curl-cql"):
         assert sorted(r.seed for r in runs if r.algo == algo) == [0, 1, 2]
     assert spec.data.policy == "random" and spec.data.episodes is not None
+
+
+def test_toy_cpu_table_uses_the_cpu_preset_and_a_dreamerv2_medium_replay_target():
+    spec = named_table("toy-cpu").check()
+    assert spec.pairs == TOY and spec.preset == "cpu"
+    assert spec.data.policy == "dreamerv2" and spec.data.quality == "medium-replay" and spec.data.max_steps == 4000
+    runs = spec.runs()
+    for algo in ("coworld", "dreamerv2", "curl", "curl-cql"):
+        assert sorted(r.seed for r in runs if r.algo == algo) == [0, 1, 2]
+    # Every override names a real config key with a value in range on the cpu preset.
+    config = make_config("cpu", list(spec.overrides))
+    assert config.curl.updates == 3000 and config.curl.hidden == 64 and config.penalty.ensemble == 3
 
 
 def test_ablation_switches_each_term_off_in_turn():
