@@ -45,7 +45,6 @@ from coworld.losses.coworld import (
     source_reward_loss_on_target,
     value_regulariser,
 )
-from coworld.models.distributions import TwoHotSymlog
 from coworld.progress import progress_bar
 from coworld.training.checkpoint import CHECKPOINT_NAME, load_checkpoint, rng_state, save_checkpoint, set_rng_state
 from coworld.training.evaluate import evaluate
@@ -135,8 +134,7 @@ class CoWorld:
                 post, _, _ = self.source.world_model.observe(target_batch)
                 head = self.source.world_model.reward_head(self.source.world_model.features(post))
                 label = relabel_reward(head.mean, target_batch["reward"].float(), cfg.k)
-                pred = head if isinstance(head, TwoHotSymlog) else head.mean
-                return {"relabel": source_reward_loss_on_target(pred, label).mean()}
+                return {"relabel": source_reward_loss_on_target(head, label).mean()}
 
         batch_t = self.source.to_batch(batch)
         metrics, post = self.source.train_world_model(batch_t, extra)

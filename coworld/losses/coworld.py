@@ -21,7 +21,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from coworld.models.distributions import TwoHotSymlog
+from coworld.losses.dreamer import reward_loss
+from coworld.models.distributions import TwoHotSymlog, UnitGaussian
 
 __all__ = [
     "alignment_loss",
@@ -150,7 +151,7 @@ def relabel_reward(source_pred: Tensor, target_reward: Tensor, k: float) -> Tens
     return k * source_pred.detach() + (1.0 - k) * target_reward
 
 
-def source_reward_loss_on_target(pred_mean: Tensor | TwoHotSymlog, relabelled: Tensor) -> Tensor:
+def source_reward_loss_on_target(pred: UnitGaussian | TwoHotSymlog | Tensor, relabelled: Tensor) -> Tensor:
     """Target-batch term of Eq. 5: the source reward head's negative log-likelihood of the relabelled reward.
 
     Paper, Eq. 5::
@@ -170,22 +171,18 @@ def source_reward_loss_on_target(pred_mean: Tensor | TwoHotSymlog, relabelled: T
     eta * source``, ``eta = max(1 - step / 2e5, 0.2)``, with a step counter that never advances; the paper sums
     the two expectations with weight 1 each. The weighting is the caller's.
 
-    A :class:`TwoHotSymlog` head (``world_model.reward_dist='twohot'``) is passed as its distribution; the term
-    is then its cross-entropy against the relabelled reward's two-hot encoding.
+    It is the world model's own :func:`~coworld.losses.dreamer.reward_loss` with the label held constant, so a
+    :class:`TwoHotSymlog` head (``world_model.reward_dist='twohot'``) gets its cross-entropy against the relabelled
+    reward's two-hot encoding.
 
     Args:
-        pred_mean: ``(B, T)`` mean reward of the source reward head on the target sequence (with gradient), or
-            the head's :class:`TwoHotSymlog` there.
+        pred: ``(B, T)`` the source reward head's distribution on the target sequence, or its mean (with gradient).
         relabelled: ``(B, T)`` output of :func:`relabel_reward`; treated as a constant label.
 
     Returns:
         ``(B, T)`` negative log-likelihood up to its constant.
     """
-    if isinstance(pred_mean, TwoHotSymlog):
-        _check_same_shape(pred_mean=pred_mean.logits[..., 0], relabelled=relabelled)
-        return -pred_mean.log_prob(relabelled.detach())
-    _check_same_shape(pred_mean=pred_mean, relabelled=relabelled)
-    return 0.5 * (pred_mean - relabelled.detach()).square()
+    return reward_loss(pred, relabelled.detach())
 
 
 # --------------------------------------------------------------------------------------------------------------

@@ -42,20 +42,23 @@ def reward_loss(pred: UnitGaussian | TwoHotSymlog | Tensor, target: Tensor) -> T
     """Reward negative log-likelihood under a unit-variance Gaussian: ``0.5 * (pred - target)^2`` (or, for a
     :class:`TwoHotSymlog` head, its cross-entropy against the target's two-hot encoding).
 
-    ``pred`` is the reward head's output (a :class:`UnitGaussian`) or its mean, any shape ``(...)`` (``(B, T)``
-    for sequences); ``target`` the same shape. Returns ``(...)``. Works for any features and any targets, e.g.
-    CoWorld's relabelled source rewards on target features (Eqs. 4-5).
+    ``pred`` is the reward head's output (a :class:`UnitGaussian` or :class:`TwoHotSymlog`) or its mean, any shape
+    ``(...)`` (``(B, T)`` for sequences); ``target`` the same shape. Returns ``(...)``. Works for any features and
+    any targets, e.g. CoWorld's relabelled source rewards on target features (Eqs. 4-5).
     """
-    if isinstance(pred, TwoHotSymlog):
-        if pred.logits.shape[:-1] != target.shape:
-            raise ValueError(
-                f"reward prediction {tuple(pred.logits.shape[:-1])} and target {tuple(target.shape)} differ in shape"
-            )
-        return -pred.log_prob(target.float())
-    mean = pred.mean if isinstance(pred, UnitGaussian) else pred
-    if mean.shape != target.shape:
-        raise ValueError(f"reward prediction {tuple(mean.shape)} and target {tuple(target.shape)} differ in shape")
-    return -UnitGaussian(mean.float()).log_prob(target.float())
+    return _scalar_nll(pred, target, "reward prediction")
+
+
+def _scalar_nll(pred: UnitGaussian | TwoHotSymlog | Tensor, target: Tensor, name: str) -> Tensor:
+    """``-log p(target)`` under a scalar head's distribution (a bare tensor is a unit Gaussian's mean), ``(...)``;
+    ``ValueError`` naming ``name`` unless prediction and target have one shape."""
+    dist = pred if isinstance(pred, UnitGaussian | TwoHotSymlog) else UnitGaussian(pred)
+    shape = dist.logits.shape[:-1] if isinstance(dist, TwoHotSymlog) else dist.mean.shape
+    if shape != target.shape:
+        raise ValueError(f"{name} {tuple(shape)} and target {tuple(target.shape)} differ in shape")
+    if isinstance(dist, UnitGaussian):
+        dist = UnitGaussian(dist.mean.float())
+    return -dist.log_prob(target.float())
 
 
 def discount_loss(pred: Bernoulli | Tensor, continuation: Tensor) -> Tensor:
@@ -123,10 +126,7 @@ def critic_loss(value: UnitGaussian | TwoHotSymlog | Tensor, target: Tensor, wei
     ``value`` is the critic's mean on imagined states (with gradient) or its distribution, ``target`` the
     lambda-return, ``weight`` the cumulative discount of reaching the state; all ``(H, N)``. Returns ``(H, N)``.
     """
-    if isinstance(value, TwoHotSymlog):
-        return -weight.detach() * value.log_prob(target.detach())
-    mean = value.mean if isinstance(value, UnitGaussian) else value
-    return weight.detach() * 0.5 * (mean - target.detach()).square()
+    return weight.detach() * _scalar_nll(value, target.detach(), "value")
 
 
 def actor_loss(
