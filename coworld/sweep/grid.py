@@ -27,7 +27,7 @@ from pathlib import Path
 from typing import Any
 
 from coworld import envs
-from coworld.config import make_config
+from coworld.config import PRESETS, make_config
 from coworld.errors import ConfigError, CoworldError
 from coworld.training.train import ALGOS, NEEDS_SOURCE
 
@@ -294,9 +294,9 @@ TOY_CPU_DATA = DataSpec(policy="dreamerv2", quality="medium-replay", max_steps=4
 experienced until its evaluation return reaches a third of the scripted expert's (or 4,000 steps)."""
 
 TOY_CPU_OVERRIDES = tuple(
-    f"{section}.{key}={value}"
+    f"{key}={PRESETS['tiny'][key]}"
     for section in ("curl", "drqbc")
-    for key, value in (("num_filters", 8), ("num_layers", 2), ("feature_dim", 16), ("hidden", 64))
+    for key in (f"{section}.num_filters", f"{section}.num_layers", f"{section}.feature_dim", f"{section}.hidden")
 ) + (
     "curl.updates=3000",
     "curl.eval_every=1000",
