@@ -7,7 +7,8 @@ still (so the latent is a mid-episode one), and from each of those 64 latents pr
 - which of 9 constant actions (8 directions at full speed, and standing still) the model's imagination scores best
   over ``--horizon`` steps, against the best one in the true dynamics; near the goal the true best is to stand still;
 - the decoder's squared reconstruction error of the frame (how well the model draws that state);
-- the actor's mode action.
+- the actor's mode action, and its mean before the ``tanh`` squash (beyond about +-3 the squash passes almost no
+  gradient).
 
     python benchmarks/toy_model_probe.py RUN_FOLDER        # e.g. the .run folder `coworld collect` leaves
 """
@@ -75,6 +76,7 @@ def main() -> None:
         reward = wm.reward_head(feat).mean.numpy()
         error = ((wm.decoder(feat) - preprocess_image(torch.as_tensor(np.stack(frames)))) ** 2).sum((1, 2, 3)).numpy()
         actor = agent.actor_critic.actor(feat).mode.numpy()
+        squash_input = agent.actor_critic.actor.mlp(feat).chunk(2, dim=-1)[0].numpy()
         imagined = []
         for direction in DIRECTIONS:
             latent, total = start, 0.0
@@ -115,6 +117,8 @@ def main() -> None:
         )
     print(f"  median reconstruction error elsewhere {np.median(error[~near]):.1f}")
     print(f"actor's mode action: std over the 64 states {actor.std(0).round(2).tolist()}")
+    low, mid, high = np.percentile(squash_input, [0, 50, 100], axis=0).round(2)
+    print(f"actor's mean before tanh, per dimension: min {low.tolist()}, median {mid.tolist()}, max {high.tolist()}")
 
 
 if __name__ == "__main__":

@@ -169,10 +169,12 @@ class ActorCriticConfig:
     actor_max_std: Annotated[float, POSITIVE] = 1.0
     """Upper bound of the actor's standard deviation, 'normal' only (DreamerV3: 1.0)."""
     actor_dist: Annotated[str, OneOf(("trunc_normal", "tanh_normal", "normal"))] = "trunc_normal"
-    """Actor distribution: 'trunc_normal' (DreamerV2's DMC choice: truncated to [-1, 1]), 'tanh_normal', or 'normal'
-    (DreamerV3's: ``Normal(tanh(m), std)`` with std in [actor_min_std, actor_max_std], samples not truncated in
-    imagination and clipped to [-1, 1] when acted). With a truncated normal, widening the spread moves the mean
-    action away from a bound, so a return that wants a bound also shrinks the spread; an untruncated one does not."""
+    """Actor distribution: 'trunc_normal' (DreamerV2's DMC choice: truncated to [-1, 1]), 'tanh_normal'
+    (DreamerV1's: ``tanh(Normal(m, std))``, entropy estimated from one sample, the squash included, so a mean deep in
+    tanh's flat tails lowers it), or 'normal' (DreamerV3's: ``Normal(tanh(m), std)`` with std in [actor_min_std,
+    actor_max_std], samples not truncated in imagination and clipped to [-1, 1] when acted). With a truncated normal,
+    widening the spread moves the mean action away from a bound, so a return that wants a bound also shrinks the
+    spread; an untruncated one does not."""
     critic_dist: Annotated[str, OneOf(("gaussian", "twohot"))] = "gaussian"
     """Critic head: 'gaussian' (DreamerV2: a squared error to the lambda-returns) or 'twohot' (DreamerV3: 255 bins
     in symlog space, cross-entropy against the two-hot encoding of the return)."""
@@ -453,13 +455,15 @@ PRESETS: dict[str, dict[str, Any]] = {
         "actor_critic.actor_lr": 2e-4,
         "actor_critic.critic_lr": 3e-4,
         # DreamerV3's behaviour learning and heads on DreamerV2's world model (RESULTS.md, "The actor collapse,
-        # third pass"): a normal actor on normalised returns, advantages through the dynamics, a critic that
-        # bootstraps from itself with the slow critic as a regulariser, two-hot reward head and critic that start
-        # at zero (so the actor keeps its spread until rewards differ), LayerNorm + SiLU heads, 1% unimix latents.
-        "actor_critic.actor_dist": "normal",
+        # third pass"): normalised returns, advantages through the dynamics, a critic that bootstraps from itself
+        # with the slow critic as a regulariser, two-hot reward head and critic that start at zero (so the actor
+        # keeps its spread until rewards differ), LayerNorm + SiLU heads, 1% unimix latents. The actor is
+        # DreamerV1's tanh-squashed normal, whose entropy counts the squash, so a mean pushed into tanh's flat tails
+        # costs entropy and can come back (DreamerV3's Normal(tanh(m), std) left one action dimension pinned at +1
+        # on 2 seeds in 4: "The actor collapse, fourth pass").
+        "actor_critic.actor_dist": "tanh_normal",
         "actor_critic.return_norm": True,
         "actor_critic.actor_entropy": 3e-4,
-        "actor_critic.actor_absmax": True,
         "actor_critic.actor_advantage": True,
         "actor_critic.critic_target": "critic",
         "actor_critic.slow_regulariser": 1.0,
