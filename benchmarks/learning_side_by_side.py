@@ -34,9 +34,9 @@ REFERENCE_SETTINGS = {
     "dyn_stoch": 8,
     "dyn_discrete": 8,
     "units": 64,
-    "batch_size": 16,
-    "batch_length": 32,
-    "train_ratio": 256,  # replayed steps per env step: 16 x 32 every 2 env steps, as train.train_every=2
+    "batch_size": 8,
+    "batch_length": 16,
+    "train_ratio": 64,  # replayed steps per env step: 8 x 16 every 2 env steps, as train.train_every=2
     "prefill": 500,
     "pretrain": 10,
     "model_lr": 6e-4,

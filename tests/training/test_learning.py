@@ -31,7 +31,7 @@ class RandomAgent:
 
 def _learn_online(tmp_path, config, max_steps: int) -> tuple[DreamerV2, int]:
     """DreamerV2 trained online on toy_reach for ``max_steps`` env steps; returns it and its update count."""
-    torch.manual_seed(0)
+    torch.manual_seed(config.seed)
     agent = DreamerV2(config=config, action_size=2, device="cpu")
     with (
         Logger(tmp_path, outputs=("jsonl",)) as logger,
@@ -69,17 +69,32 @@ BEST_CONSTANT = 31.3
 """The best return a constant action can reach on toy_reach (up-right, at most 31.3 over 8 directions)."""
 
 
-@pytest.mark.slow
-@pytest.mark.timeout(3600)  # 16 minutes beside one other job (RESULTS.md), longer beside more
-def test_cpu_preset_reads_the_dot_on_toy_reach(tmp_path):
-    """The ``cpu`` preset's DreamerV2, 3,500 env steps online on toy_reach, scores what no constant action can.
-
-    Measured through ``coworld collect`` (benchmarks/RESULTS.md, "The actor collapse, third pass"): 45.8 / 36.8 /
-    36.5 on seeds 0-2 at 3,500 steps, against the best constant direction's 31.3."""
-    config = make_config("cpu", ["device=cpu", "train.eval_every=100000", "train.log_every=500"])
-    agent, _ = _learn_online(tmp_path, config, max_steps=3500)
+def _reads_the_dot(tmp_path, seed: int) -> float:
+    """Evaluation return (20 episodes) of the ``cpu`` preset's DreamerV2 after 3,000 env steps online on toy_reach."""
+    config = make_config("cpu", ["device=cpu", f"seed={seed}", "train.eval_every=100000", "train.log_every=500"])
+    agent, _ = _learn_online(tmp_path, config, max_steps=3000)
     learned, _ = evaluate(agent, "toy_reach", episodes=20, seed=123)
-    assert learned.mean > BEST_CONSTANT + 3.0, learned.mean
+    return learned.mean
+
+
+@pytest.mark.timeout(1800)  # 9-14 minutes beside 3-4 other jobs (RESULTS.md, "The actor collapse, fourth pass")
+def test_cpu_preset_reads_the_dot_on_toy_reach(tmp_path):
+    """CI's perception test: the ``cpu`` preset's DreamerV2, 3,000 env steps online on toy_reach, scores what no
+    constant action can (the best constant direction + 3).
+
+    Measured through ``coworld collect`` on seeds 0-3: 44.7 / 45.4 / 42.0 / 46.6 at 3,000 steps; in process, as
+    here, on seeds 0-2: 44.6 / 46.1 / 43.0 (benchmarks/RESULTS.md, "The actor collapse, fourth pass")."""
+    learned = _reads_the_dot(tmp_path, seed=0)
+    assert learned > BEST_CONSTANT + 3.0, learned
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(1800)
+@pytest.mark.parametrize("seed", [1, 2])
+def test_cpu_preset_reads_the_dot_on_other_seeds(tmp_path, seed):
+    """The perception test on two more seeds."""
+    learned = _reads_the_dot(tmp_path, seed=seed)
+    assert learned > BEST_CONSTANT + 3.0, learned
 
 
 @pytest.mark.slow
