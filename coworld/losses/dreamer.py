@@ -52,12 +52,13 @@ def reward_loss(pred: UnitGaussian | TwoHotSymlog | Tensor, target: Tensor) -> T
 def _scalar_nll(pred: UnitGaussian | TwoHotSymlog | Tensor, target: Tensor, name: str) -> Tensor:
     """``-log p(target)`` under a scalar head's distribution (a bare tensor is a unit Gaussian's mean), ``(...)``;
     ``ValueError`` naming ``name`` unless prediction and target have one shape."""
-    dist = pred if isinstance(pred, UnitGaussian | TwoHotSymlog) else UnitGaussian(pred)
-    shape = dist.logits.shape[:-1] if isinstance(dist, TwoHotSymlog) else dist.mean.shape
+    if isinstance(pred, TwoHotSymlog):
+        shape, dist = pred.logits.shape[:-1], pred
+    else:
+        mean = pred.mean if isinstance(pred, UnitGaussian) else pred
+        shape, dist = mean.shape, UnitGaussian(mean.float())
     if shape != target.shape:
         raise ValueError(f"{name} {tuple(shape)} and target {tuple(target.shape)} differ in shape")
-    if isinstance(dist, UnitGaussian):
-        dist = UnitGaussian(dist.mean.float())
     return -dist.log_prob(target.float())
 
 

@@ -314,8 +314,8 @@ TOY_CPU_OVERRIDES = tuple(
 
 def toy_cpu_table() -> SweepSpec:
     """The toy pair with agents that learn: ``cpu`` preset, a source that reads the dot online (45.4-46.1 on
-    seeds 0-3 at 3,500 steps), and a medium-replay target
-    dataset collected the way the paper makes its datasets (:data:`TOY_CPU_DATA`).
+    seeds 0-3 at 3,500 steps), and a medium-replay target dataset collected the way the paper makes its datasets
+    (:data:`TOY_CPU_DATA`).
 
     Where :func:`toy_table` tests the pipeline in half an hour with agents that learn little, this table is the
     transfer result: on the ``cpu`` preset DreamerV2 reads the dot in toy_reach (benchmarks/RESULTS.md, "The actor
