@@ -73,6 +73,10 @@ def test_toy_cpu_table_uses_the_cpu_preset_and_a_dreamerv2_medium_replay_target(
     # Every override names a real config key with a value in range on the cpu preset.
     config = make_config("cpu", list(spec.overrides))
     assert config.curl.updates == 3000 and config.curl.hidden == 64 and config.penalty.ensemble == 3
+    # The model-free baselines take the toy table's networks and batch, not the cpu preset's (the paper's).
+    tiny = make_config("tiny")
+    assert config.curl.batch_size == tiny.curl.batch_size < make_config("cpu").curl.batch_size
+    assert config.drqbc.batch_size == tiny.drqbc.batch_size < make_config("cpu").drqbc.batch_size
 
 
 def test_ablation_switches_each_term_off_in_turn():
