@@ -70,24 +70,39 @@ def test_state_dict_round_trip_keeps_the_heads_through_weights_only_load() -> No
     assert clone.train(batch) == pytest.approx(expected)
 
 
-@pytest.mark.slow
-@pytest.mark.xfail(
+TINY_COLLAPSES = pytest.mark.xfail(
     strict=True,
     reason="known failure (issue 18): on the tiny preset the offline agent's actor collapses to a constant action; "
     "learned 4.1 against random 15.0 at 8db5422 (measured 2026-11-24), 4.5 at c521e33 where this test was merged",
 )
-def test_tiny_dreamerv2_penalty_learns_toy_reach_offline(tmp_path, toy_expert):
+
+
+CPU_TOO_FEW_UPDATES = pytest.mark.xfail(
+    strict=True,
+    reason="known failure (issue 21): the cpu preset's actor-critic does not learn in these 600 updates on this "
+    "data; learned 14.2 against random 15.0 at 5ce5863, and 0.7 with penalty.weight=0 (measured 2026-11-24)",
+)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(
+    "preset", [pytest.param("tiny", marks=TINY_COLLAPSES), pytest.param("cpu", marks=CPU_TOO_FEW_UPDATES)]
+)
+def test_dreamerv2_penalty_learns_toy_reach_offline(tmp_path, toy_expert, preset):
     """V-D4RL's penalised DreamerV2 on 30 noisy-expert toy_reach episodes: 400 world-model updates, then 600
     actor-critic updates on the penalised reward, must beat a uniform random policy clearly.
 
     Measured at a9da0c3 (before the lead's actor fix): random 15.0, learned 2.5 (the actor's entropy falls to -2.4
-    and the policy collapses to a constant action, the known DreamerV2 problem), so this test fails there."""
+    and the policy collapses to a constant action, the known DreamerV2 problem), so this test fails there. The
+    ``tiny`` preset keeps DreamerV2's actor and still collapses. The ``cpu`` preset, whose DreamerV2 learns online
+    (issue 18), does not learn here either, with or without the penalty: its imagined reward is about 1 everywhere on
+    this near-expert data, and its actor learns online over 1,500 updates, not 600."""
     from coworld.agents.dreamerv2_penalty import PenaltyDreamerV2
     from coworld.data import open_dataset
 
     path = tmp_path / "toy_reach-expert.h5"
     toy_expert.write_dataset(path, episodes=30, noise=0.3, seed=0)
-    config = make_config("tiny", ["device=cpu", "penalty.model_updates=400", "train.batch_size=16"])
+    config = make_config(preset, ["device=cpu", "penalty.model_updates=400", "train.batch_size=16"])
     torch.manual_seed(0)
     agent = PenaltyDreamerV2(config=config, action_size=2, device="cpu")
     with open_dataset(path) as dataset:
@@ -101,4 +116,5 @@ def test_tiny_dreamerv2_penalty_learns_toy_reach_offline(tmp_path, toy_expert):
     learned = toy_expert.mean_return(
         lambda obs, state, first: agent.policy(obs, state, "eval", is_first=first), episodes=5, seed=100
     )
+    print(f"{preset}: learned {learned:.1f}, random {random:.1f}")
     assert learned > random + 10.0, (learned, random)
