@@ -1,15 +1,16 @@
 """What the toy tasks measure: returns of simple policies, and how far the tiny DreamerV2 gets online.
 
 For each toy task: uniform random actions, the constant action (+1, +1), the best of 16 constant directions, and
-the scripted expert (50 episodes each, seeds 0-49; the best constant direction over 20). With ``--learn N``, the
-tiny DreamerV2 also learns ``toy_reach`` online for N environment steps (``coworld collect`` with no stop return),
-evaluated every 1,000 steps on 10 episodes.
+the scripted expert (50 episodes each, seeds 0-49; the best constant direction over 20). With ``--learn N``,
+DreamerV2 (``--preset``, ``tiny`` unless given) also learns ``toy_reach`` online for N environment steps (``coworld
+collect`` with no stop return), evaluated every ``--eval-every`` steps (1,000) on 10 episodes.
 
 ``--goal X Y`` moves the goal of both toy tasks for this process only (an experiment, not a registered task): with
 the goal at the centre a constant action cannot score, so a return above the random policy's needs perception.
 
     MUJOCO_GL=egl .venv/bin/python benchmarks/toy_baselines.py --learn 8000
     MUJOCO_GL=egl .venv/bin/python benchmarks/toy_baselines.py --goal 0 0 --learn 6000
+    MUJOCO_GL=egl .venv/bin/python benchmarks/toy_baselines.py --goal 0 0 --learn 4000 --preset cpu --eval-every 500
 """
 
 from __future__ import annotations
@@ -45,7 +46,10 @@ def mean_return(task: str, policy: Callable[[object], np.ndarray], episodes: int
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--goal", type=float, nargs=2, default=None, metavar=("X", "Y"))
-    parser.add_argument("--learn", type=int, default=0, help="also train the tiny DreamerV2 online this many steps")
+    parser.add_argument("--learn", type=int, default=0, help="also train DreamerV2 online this many steps")
+    parser.add_argument("--preset", default="tiny", help="config preset of the --learn run")
+    parser.add_argument("--eval-every", type=int, default=1000, help="env steps between the --learn run's evaluations")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the --learn run")
     args = parser.parse_args()
     if args.goal is not None:
         toy.GOAL = tuple(args.goal)
@@ -68,14 +72,14 @@ def main() -> None:
         torch.set_num_threads(1)
         with tempfile.TemporaryDirectory() as folder:
             out = Path(folder) / "toy_reach.h5"
-            overrides = ["train.eval_every=1000", "train.eval_episodes=10"]
+            overrides = [f"train.eval_every={args.eval_every}", "train.eval_episodes=10"]
             collect_dreamerv2(
-                "toy_reach", out, preset="tiny", overrides=overrides, max_steps=args.learn, stop_return=1e9,
-                device="cpu", progress=False,
+                "toy_reach", out, preset=args.preset, overrides=overrides, max_steps=args.learn, stop_return=1e9,
+                device="cpu", progress=False, seed=args.seed,
             )  # fmt: skip
             records = [json.loads(line) for line in (Path(folder) / "toy_reach.run" / "metrics.jsonl").open()]
         curve = [(r["step"], r["eval/return"]) for r in records if "eval/return" in r]
-        print("tiny DreamerV2 online on toy_reach, evaluation return by environment step:")
+        print(f"DreamerV2 ({args.preset} preset, seed {args.seed}) online on toy_reach, evaluation return by env step:")
         print(", ".join(f"{step}: {value:.1f}" for step, value in curve))
 
 
