@@ -5,6 +5,7 @@ from __future__ import annotations
 import click
 
 from coworld.commands.options import input_path, output_folder
+from coworld.text import count
 
 
 @click.command()
@@ -20,6 +21,6 @@ def report(root, out) -> None:
     made = write_report(root, out)
     for problem in made.skipped:
         click.echo(f"warning: skipped {problem}", err=True)
-    click.echo(f"{len(made.results)} runs, {made.finished} finished")
+    click.echo(f"{count(made.runs, 'run')}, {made.finished} finished")
     for path in made.files:
         click.echo(f"wrote {path}")

@@ -15,8 +15,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from coworld.report.results import RunResult, load_results, to_csv
+from coworld.report.results import ONLINE_ALGO, RunResult, learning_curve, load_results, to_csv
 from coworld.storage import check_writable, write_text_atomically
+from coworld.text import count
 
 
 @dataclass(frozen=True)
@@ -29,6 +30,16 @@ class Report:
     @property
     def finished(self) -> int:
         return sum(r.final_return is not None for r in self.results)
+
+    @property
+    def runs(self) -> int:
+        """Runs, without the dataset collectors nobody evaluated (they are not runs that are still to finish)."""
+        return len(self.results) - len(_collectors(self.results))
+
+
+def _collectors(results: list[RunResult]) -> list[RunResult]:
+    """The online DreamerV2 agents of ``coworld collect --policy dreamerv2`` that have no final evaluation."""
+    return [r for r in results if r.algo == ONLINE_ALGO and r.final_return is None]
 
 
 def write_report(root: str | Path, out: str | Path | None = None) -> Report:
@@ -71,10 +82,12 @@ def _markdown(root: Path, results: list[RunResult], figures: list[tuple[str, str
     from coworld.report import tables
 
     finished = [r for r in results if r.final_return is not None]
+    collectors = _collectors(results)
+    runs = len(results) - len(collectors)
     lines = [
         f"# Results: {root}",
         "",
-        f"{len(results)} runs, {len(finished)} finished (with eval.json). Final return: mean ± std over seeds of"
+        f"{count(runs, 'run')}, {len(finished)} finished (with eval.json). Final return: mean ± std over seeds of"
         " each run's final evaluation; best mean per row in bold; (n=k) where a cell has fewer seeds than the"
         " others. Aggregate: interquartile mean of normalized scores, (R - random) / (reference - random) per"
         " target task, over all runs of all tasks, with its 95% stratified-bootstrap confidence interval.",
@@ -104,7 +117,19 @@ def _markdown(root: Path, results: list[RunResult], figures: list[tuple[str, str
         lines += ["## Files skipped", "", "These could not be read; the report was made without them:", ""]
         lines += [f"- {problem}" for problem in skipped]
         lines.append("")
-    unfinished = [r for r in results if r.final_return is None]
+    if collectors:
+        lines += [
+            "## Dataset collectors",
+            "",
+            "The online DreamerV2 agents that made the datasets (`coworld eval --ckpt FOLDER` evaluates one):",
+            "",
+        ]
+        for r in collectors:
+            curve = learning_curve(Path(r.run_dir), r.algo)
+            last = f"last evaluation while learning {curve[-1][1]:.1f} at env step {curve[-1][0]:,}" if curve else ""
+            lines.append(f"- `{r.run_dir}` ({r.target}, seed {r.seed}): {last or 'no evaluation logged yet'}")
+        lines.append("")
+    unfinished = [r for r in results if r.final_return is None and r not in collectors]
     if unfinished:
         lines += ["## Not finished", "", "Runs without eval.json (training, failed, or never evaluated):", ""]
         for r in unfinished:

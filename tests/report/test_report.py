@@ -198,6 +198,13 @@ def test_run_folders_are_found_by_their_run_json(tmp_path):
     (tmp_path / "notes" / "run.json").write_text(json.dumps({"something": "else"}))  # not a run description
     assert find_run_dirs(tmp_path) == [tmp_path / "a" / "r1", collector]
     assert load_result(collector).algo == "dreamerv2-online"
+    # A collector nobody evaluated is listed as what made a dataset, not as a run still to finish.
+    (collector / "metrics.jsonl").write_text(json.dumps({"step": 500, "unit": "env_step", "eval/return": 29.7}) + "\n")
+    out = CliRunner().invoke(main, ["report", str(tmp_path), "--out", str(tmp_path / "out")])
+    assert out.exit_code == 0 and "1 run, 1 finished" in out.output, out.output
+    text = (tmp_path / "out" / "report.md").read_text()
+    assert "1 run, 1 finished" in text and "## Not finished" not in text
+    assert "## Dataset collectors" in text and "last evaluation while learning 29.7 at env step 500" in text
     empty = tmp_path / "empty"
     empty.mkdir()
     out = CliRunner().invoke(main, ["report", str(empty)])
