@@ -5,7 +5,8 @@ through its target agent), puts the dot at points of the square, lets the agent 
 those latents reports:
 
 - **position readout**: how well a ridge regression from the latent features recovers the dot's (x, y), fitted on
-  a 12 x 12 grid and scored (R^2) on 64 other random positions. High R^2: the world model holds where the dot is;
+  a 12 x 12 grid and scored (R^2) on 64 other random positions. High R^2: the world model holds where the dot is
+  (below 0: the readout fails on new positions);
 - **the actor**: its mode action's spread over the 64 test states (0 when the same action is taken everywhere),
   its mean action, and the share of states where it pushes up-right within 30 degrees (the best constant's way);
 - **the actor's mean before tanh** (beyond about +-3 the squash passes almost no gradient);
@@ -56,6 +57,7 @@ def ridge_r2(train_x: np.ndarray, train_y: np.ndarray, test_x: np.ndarray, test_
 
 
 def probe(run: Path, train_positions: np.ndarray, test_positions: np.ndarray) -> dict[str, object]:
+    torch.manual_seed(0)  # the latents are posterior samples: the same draws for every run and every call
     state = load_checkpoint(run)
     config = from_dict(state["config"])
     agent = make_agent("dreamerv2", config=config, action_size=2, device="cpu")
