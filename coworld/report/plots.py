@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from coworld.errors import CoworldError
-from coworld.report.results import RunResult, learning_curve
+from coworld.report.results import ONLINE_ALGO, RunResult, learning_curve
 from coworld.report.tables import ALGO_ORDER
 
 
@@ -51,9 +51,17 @@ def mean_band(curves: Sequence[Sequence[tuple[int, float]]]) -> tuple[np.ndarray
     return steps, mean, std
 
 
+def curve_runs(results: Sequence[RunResult], target: str) -> tuple[list[RunResult], str]:
+    """The runs whose curves share a figure of ``target``, and its x-axis: the training runs against target updates;
+    where there are none, the online DreamerV2 runs of ``coworld collect`` against env steps (they count those)."""
+    runs = [r for r in results if r.target == target]
+    trained = [r for r in runs if r.algo != ONLINE_ALGO]
+    return (trained, "target updates") if trained else (runs, "env steps")
+
+
 def learning_curves(results: Sequence[RunResult], target: str, path: Path) -> bool:
     """Plot the learning curves of the runs on ``target``; False (nothing written) when none has evaluations."""
-    runs = [r for r in results if r.target == target]
+    runs, x_label = curve_runs(results, target)
     fig = _figure(6.0, 4.0)
     ax = fig.add_subplot()
     drawn = False
@@ -70,7 +78,7 @@ def learning_curves(results: Sequence[RunResult], target: str, path: Path) -> bo
         return False
     sources = sorted({r.source for r in runs if r.source})
     ax.set_title(f"{'/'.join(sources)} → {target}" if sources else target)
-    ax.set_xlabel("target updates")
+    ax.set_xlabel(x_label)
     ax.set_ylabel("evaluation return (mean ± std over seeds)")
     ax.grid(alpha=0.3)
     ax.legend(fontsize="small")

@@ -17,7 +17,7 @@ from coworld import envs
 from coworld.cli import main
 from coworld.report import results as results_module
 from coworld.report import write_report
-from coworld.report.plots import mean_band
+from coworld.report.plots import curve_runs, mean_band
 from coworld.report.results import find_run_dirs, learning_curve, load_result, load_results
 from coworld.report.tables import iqm_interval, results_table, value_table
 
@@ -205,6 +205,11 @@ def test_run_folders_are_found_by_their_run_json(tmp_path):
     text = (tmp_path / "out" / "report.md").read_text()
     assert "1 run, 1 finished" in text and "## Not finished" not in text
     assert "## Dataset collectors" in text and "last evaluation while learning 29.7 at env step 500" in text
+    # Their curves count env steps: a figure shows them only where no training run shares the target.
+    results = load_results(tmp_path)
+    assert [r.algo for r in results] == ["curl", "dreamerv2-online"]
+    assert curve_runs(results, "toy_reach") == ([results[0]], "target updates")
+    assert curve_runs(results[1:], "toy_reach") == ([results[1]], "env steps")
     empty = tmp_path / "empty"
     empty.mkdir()
     out = CliRunner().invoke(main, ["report", str(empty)])
