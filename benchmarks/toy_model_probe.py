@@ -23,7 +23,7 @@ import torch
 from coworld.agents.factory import make_agent
 from coworld.config import from_dict
 from coworld.envs import make
-from coworld.envs.toy import GOAL, LIMIT, SPEED, ToyReachEnv
+from coworld.envs.toy import GOAL, LIMIT, SPEED, reach_reward
 from coworld.models.world_model import preprocess_image
 from coworld.training.checkpoint import load_checkpoint
 
@@ -39,7 +39,7 @@ def true_return(position: np.ndarray, direction: np.ndarray, horizon: int) -> fl
     total = 0.0
     for _ in range(horizon):
         position = np.clip(position + direction * SPEED, -LIMIT, LIMIT)
-        total += ToyReachEnv.reward(position)
+        total += reach_reward(position)
     return total
 
 
@@ -87,7 +87,7 @@ def main() -> None:
             imagined.append(total.numpy())
     imagined = np.stack(imagined, 1)
     truth = np.array([[true_return(p, d, args.horizon) for d in DIRECTIONS] for p in positions])
-    true_reward = np.array([ToyReachEnv.reward(p) for p in positions])
+    true_reward = np.array([reach_reward(p) for p in positions])
 
     def grid(values: np.ndarray, fmt: str) -> str:
         rows = []

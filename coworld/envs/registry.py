@@ -1,4 +1,4 @@
-"""The task registry: every source and target task of the paper plus a toy pair, and :func:`make`.
+"""The task registry: every source and target task of the paper plus two toy pairs, and :func:`make`.
 
 Every task is a Gymnasium env whose observation is the image itself: ``Box(0, 255, (S, S, 3), uint8)`` RGB,
 ``S = 64`` by default. Actions: ``Box(-1, 1, (A,), float32)``. Episodes never terminate; they truncate after
@@ -8,7 +8,8 @@ Returns in :class:`TaskSpec`:
 
 * ``reference_return`` -- the best return known to be reachable on the task, with its provenance in
   ``reference_source``. It sets the medium level of the medium-replay and medium datasets (the paper: "1/3 of the
-  maximum score that the DreamerV2 agent can achieve") and the top of the normalized score.
+  maximum score that the DreamerV2 agent can achieve"; where that is below random, a third of the way from random:
+  :attr:`TaskSpec.medium_return`) and the top of the normalized score.
 
   - ``walker_walk`` 964.9 and ``cheetah_run`` 816.1: DreamerV2's published DMC-vision scores (the scores file
     released with its code, ``scores/dmc-vision-dreamerv2.json``): the maximum over its 2M-frame training curve of
@@ -70,8 +71,17 @@ class TaskSpec:
 
     @property
     def medium_return(self) -> float | None:
-        """The medium level: a third of ``reference_return`` (where medium-replay collection stops)."""
-        return None if self.reference_return is None else self.reference_return / 3.0
+        """The medium level, where medium-replay collection stops: a third of ``reference_return``.
+
+        Where a third is not above ``random_return`` (the centre toy tasks, whose random policy scores 42% of the
+        expert), a third of the way from random to the reference instead, so a medium dataset is better than random.
+        """
+        if self.reference_return is None:
+            return None
+        third = self.reference_return / 3.0
+        if self.random_return is not None and third <= self.random_return:
+            return self.random_return + (self.reference_return - self.random_return) / 3.0
+        return third
 
 
 @dataclass(frozen=True)
@@ -141,6 +151,8 @@ _TOY = [
     # name, modification, reference_return (scripted expert), random_return
     ("toy_reach", "", 46.5, 9.6),
     ("toy_reach_shifted", "other colours; constant drift towards -x", 45.6, 2.3),
+    ("toy_reach_centre", "goal at the centre", 48.5, 20.3),
+    ("toy_reach_centre_shifted", "goal at the centre; other colours; constant drift towards -x", 48.4, 18.3),
 ]
 
 
@@ -188,8 +200,9 @@ PAIRS: tuple[tuple[str, str], ...] = (
     ("mw_drawer_close", "mw_button_press"),
     ("mw_stick_push", "mw_assembly"),
     ("toy_reach", "toy_reach_shifted"),
+    ("toy_reach_centre", "toy_reach_centre_shifted"),
 )
-"""(source, target) pairs: the paper's DMC and Meta-World transfer settings, and the toy pair."""
+"""(source, target) pairs: the paper's DMC and Meta-World transfer settings, and the two toy pairs."""
 
 
 def paired_source(target: str) -> str | None:

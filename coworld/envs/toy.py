@@ -8,15 +8,22 @@ dense in [0, 1]: 1 inside the goal disc, falling linearly to 0 at ``REWARD_MARGI
 ``toy_reach_shifted``: the same task seen and felt differently -- other colours, and a constant drift of
 ``DRIFT`` per step towards -x (a "slope"), so a policy has to push right to stay on the goal.
 
-Both: 50 steps per episode, action repeat 1, never terminate. Returns (mean over 200 episodes, seeds 0-199,
+``toy_reach_centre`` and ``toy_reach_centre_shifted``: the same two with the goal at the centre of the square
+(``CENTRE_GOAL``). With the goal in a corner the constant action towards it scores 30.7 of the expert's 46.5; with it
+at the centre every constant direction drives the dot into a wall, and the best of 16 scores 10.6 / 10.4, below the
+random policy, so any return above random needs the dot's position read from the frame
+(``benchmarks/toy_baselines.py --pair centre``).
+
+All: 50 steps per episode, action repeat 1, never terminate. Returns (mean over 200 episodes, seeds 0-199,
 re-measured by ``tests/envs/test_toy.py``): uniform random actions 9.6 on toy_reach and 2.3 on toy_reach_shifted
 (the drift carries an aimless dot away from the goal); :meth:`ToyReachEnv.expert_action` (full speed at the goal)
-46.5 and 45.6. No policy can reach 50: the dot starts at least 0.4 outside the goal disc.
+46.5 and 45.6. The centre pair: random 20.3 and 18.3, expert 48.5 and 48.4. No policy can reach
+50: the dot starts at least 0.4 outside the goal disc.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any
 
 import gymnasium as gym
@@ -28,7 +35,9 @@ if TYPE_CHECKING:
 SPEED = 0.1
 """Distance moved per step per unit of action."""
 GOAL = (0.45, 0.45)
-"""Goal centre."""
+"""Goal centre of toy_reach and toy_reach_shifted."""
+CENTRE_GOAL = (0.0, 0.0)
+"""Goal centre of toy_reach_centre and toy_reach_centre_shifted."""
 GOAL_RADIUS = 0.2
 DOT_RADIUS = 0.12
 REWARD_MARGIN = 1.0
@@ -49,14 +58,20 @@ class ToyVariant:
     goal_colour: tuple[int, int, int]
     dot_colour: tuple[int, int, int]
     drift: tuple[float, float] = (0.0, 0.0)
+    goal: tuple[float, float] = GOAL
 
 
+_PLAIN = ToyVariant(background=(30, 30, 40), goal_colour=(40, 160, 70), dot_colour=(230, 60, 50))
+_SHIFTED = ToyVariant(
+    background=(200, 190, 150), goal_colour=(60, 90, 200), dot_colour=(250, 240, 40), drift=(-DRIFT, 0.0)
+)
 VARIANTS: dict[str, ToyVariant] = {
-    "toy_reach": ToyVariant(background=(30, 30, 40), goal_colour=(40, 160, 70), dot_colour=(230, 60, 50)),
-    "toy_reach_shifted": ToyVariant(
-        background=(200, 190, 150), goal_colour=(60, 90, 200), dot_colour=(250, 240, 40), drift=(-DRIFT, 0.0)
-    ),
+    "toy_reach": _PLAIN,
+    "toy_reach_shifted": _SHIFTED,
+    "toy_reach_centre": replace(_PLAIN, goal=CENTRE_GOAL),
+    "toy_reach_centre_shifted": replace(_SHIFTED, goal=CENTRE_GOAL),
 }
+"""Each toy task's look and dynamics; the centre pair differs from the corner pair by its goal only."""
 
 
 class ToyReachEnv(gym.Env[np.ndarray, np.ndarray]):
@@ -66,7 +81,7 @@ class ToyReachEnv(gym.Env[np.ndarray, np.ndarray]):
     Action: ``(2,)`` float32 velocity in [-1, 1]. Reward in [0, 1] per step (summed over ``action_repeat``).
 
     Attributes:
-        position: the dot's centre, ``(2,)`` float64 in [-LIMIT, LIMIT].
+        position: the dot's centre, ``(2,)`` float64 in [-LIMIT, LIMIT]; ``goal``: the goal's centre, ``(2,)``.
         task: the :class:`~coworld.envs.registry.TaskSpec`; ``settings``: the resolved overrides.
     """
 
@@ -82,13 +97,14 @@ class ToyReachEnv(gym.Env[np.ndarray, np.ndarray]):
         self.action_space = gym.spaces.Box(-1.0, 1.0, (2,), np.float32)
         self._start_rng = np.random.default_rng(seed)
         self._drift = np.array(variant.drift)
+        self.goal = np.array(variant.goal)
         # World coordinates of pixel centres: column -> x, row -> y (row 0 is the top, y = +1).
         centres = (np.arange(size) + 0.5) / size * 2.0 - 1.0
         self._xs, self._ys = centres, -centres
         self._pixel = 2.0 / size
         self._background = np.empty((size, size, 3), np.float32)
         self._background[:] = variant.background
-        self._blend(self._background, np.array(GOAL), GOAL_RADIUS, variant.goal_colour)
+        self._blend(self._background, self.goal, GOAL_RADIUS, variant.goal_colour)
         self.position = np.zeros(2)
         self._steps = 0
         self._needs_reset = True
@@ -101,7 +117,7 @@ class ToyReachEnv(gym.Env[np.ndarray, np.ndarray]):
             self._start_rng = np.random.default_rng(seed)
         while True:
             start = self._start_rng.uniform(-LIMIT, LIMIT, 2)
-            if np.linalg.norm(start - GOAL) >= MIN_START_DISTANCE:
+            if np.linalg.norm(start - self.goal) >= MIN_START_DISTANCE:
                 break
         self.position = start
         self._steps = 0
@@ -126,18 +142,16 @@ class ToyReachEnv(gym.Env[np.ndarray, np.ndarray]):
         self._frame = self._draw()
         return self._frame, reward, False, truncated, {}
 
-    @staticmethod
-    def reward(position: np.ndarray) -> float:
-        """1 inside the goal disc, linear down to 0 at ``REWARD_MARGIN`` beyond its edge."""
-        outside = max(float(np.linalg.norm(position - GOAL)) - GOAL_RADIUS, 0.0)
-        return max(1.0 - outside / REWARD_MARGIN, 0.0)
+    def reward(self, position: np.ndarray) -> float:
+        """The reward at ``position``: :func:`reach_reward` towards this task's goal."""
+        return reach_reward(position, self.goal)
 
     def expert_action(self) -> np.ndarray:
         """A scripted near-optimal action from the true state: full speed at the goal, cancelling the drift.
 
         Returns ``(2,)`` float32 in [-1, 1]; used to measure the reference return and to script good data.
         """
-        wanted = (np.asarray(GOAL) - self.position - self._drift) / SPEED
+        wanted = (self.goal - self.position - self._drift) / SPEED
         largest = np.abs(wanted).max()
         if largest > 1.0:
             wanted = wanted / largest
@@ -166,6 +180,12 @@ class ToyReachEnv(gym.Env[np.ndarray, np.ndarray]):
         coverage = np.clip((radius - np.sqrt(dx * dx + dy * dy)) / self._pixel + 0.5, 0.0, 1.0)[..., None]
         patch = image[r0:r1, c0:c1]
         patch += coverage * (np.asarray(colour, np.float32) - patch)
+
+
+def reach_reward(position: np.ndarray, goal: np.ndarray | tuple[float, float] = GOAL) -> float:
+    """1 inside the goal disc around ``goal``, linear down to 0 at ``REWARD_MARGIN`` beyond its edge."""
+    outside = max(float(np.linalg.norm(np.asarray(position) - goal)) - GOAL_RADIUS, 0.0)
+    return max(1.0 - outside / REWARD_MARGIN, 0.0)
 
 
 def make_toy(task: TaskSpec, settings: EnvSettings, seed: int) -> ToyReachEnv:

@@ -28,10 +28,10 @@ PAPER_PAIRS = {
 }
 
 
-def test_pairs_are_the_papers_plus_a_toy_pair() -> None:
+def test_pairs_are_the_papers_plus_two_toy_pairs() -> None:
     assert PAPER_PAIRS < set(PAIRS)
-    (toy,) = set(PAIRS) - PAPER_PAIRS
-    assert {TASKS[name].family for name in toy} == {"toy"}
+    toys = set(PAIRS) - PAPER_PAIRS
+    assert toys == {("toy_reach", "toy_reach_shifted"), ("toy_reach_centre", "toy_reach_centre_shifted")}
     for source, target in PAIRS:
         a, b = TASKS[source], TASKS[target]
         assert (a.family, a.action_size, a.action_repeat) == (b.family, b.action_size, b.action_repeat)
@@ -46,9 +46,17 @@ def test_spec_fields_are_consistent() -> None:
         if task.family == "dmc":
             assert task.episode_length * task.action_repeat == 1000
         assert task.reference_return is not None and task.reference_source
-        assert task.medium_return == pytest.approx(task.reference_return / 3)
         if task.random_return is not None:
             assert 0 <= task.random_return < task.medium_return  # a medium dataset is better than random
+
+
+def test_the_medium_level_is_a_third_of_the_reference_unless_random_scores_more() -> None:
+    for task in TASKS.values():
+        third = task.reference_return / 3
+        if task.random_return is None or task.random_return < third:
+            assert task.medium_return == pytest.approx(third)
+    centre = TASKS["toy_reach_centre_shifted"]  # random 18.3 is above a third of 48.4
+    assert centre.medium_return == pytest.approx(18.3 + (48.4 - 18.3) / 3)
 
 
 def test_reference_returns_name_their_provenance() -> None:

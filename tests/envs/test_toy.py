@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from coworld.envs import make, task_spec
-from coworld.envs.toy import GOAL, SPEED
+from coworld.envs.toy import CENTRE_GOAL, GOAL, SPEED
 
 
 def episode_return(env, policy) -> float:
@@ -19,7 +19,7 @@ def episode_return(env, policy) -> float:
     return total
 
 
-@pytest.mark.parametrize("name", ["toy_reach", "toy_reach_shifted"])
+@pytest.mark.parametrize("name", ["toy_reach", "toy_reach_shifted", "toy_reach_centre", "toy_reach_centre_shifted"])
 def test_recorded_returns_and_a_clear_gap(name: str) -> None:
     """Re-measure the TaskSpec's returns exactly as recorded (200 episodes, seeds 0-199, env seed 0)."""
     env = make(name, seed=0)
@@ -33,8 +33,23 @@ def test_recorded_returns_and_a_clear_gap(name: str) -> None:
     spec = task_spec(name)
     assert np.mean(random) == pytest.approx(spec.random_return, abs=0.05)
     assert np.mean(expert) == pytest.approx(spec.reference_return, abs=0.05)
-    assert spec.reference_return > 4 * spec.random_return
+    assert spec.reference_return > 2 * spec.random_return
     assert max(expert) < 50  # starts are outside the goal
+
+
+@pytest.mark.parametrize("name", ["toy_reach_centre", "toy_reach_centre_shifted"])
+def test_no_constant_action_scores_on_the_centre_tasks(name: str) -> None:
+    """With the goal at the centre every constant direction ends at a wall: the best of 16 stays below random."""
+    env = make(name, seed=0)
+    best = 0.0
+    for angle in np.linspace(0, 2 * np.pi, 16, endpoint=False):
+        direction = np.array([np.cos(angle), np.sin(angle)], np.float32)
+        totals = []
+        for seed in range(20):
+            env.reset(seed=seed)
+            totals.append(episode_return(env, lambda d=direction: d))
+        best = max(best, float(np.mean(totals)))
+    assert best < 0.6 * task_spec(name).random_return
 
 
 def test_the_dot_is_read_from_the_frame() -> None:
@@ -63,6 +78,23 @@ def test_seeds_and_starts() -> None:
     distances = np.linalg.norm(np.array(starts) - GOAL, axis=1)
     assert np.all(distances >= 0.6)
     assert np.array(starts).std(0).min() > 0.3  # spread over the box
+    centre = make("toy_reach_centre", seed=1)
+    for _ in range(50):
+        centre.reset()
+        assert np.linalg.norm(centre.unwrapped.position - CENTRE_GOAL) >= 0.6
+
+
+def test_the_centre_pair_draws_and_rewards_its_goal_at_the_centre() -> None:
+    corner, centre = make("toy_reach", seed=0), make("toy_reach_centre", seed=0)
+    goal_colour = np.array([40, 160, 70])
+    for env, inside, outside in ((corner, GOAL, CENTRE_GOAL), (centre, CENTRE_GOAL, GOAL)):
+        frame = env.reset()[0]
+        is_goal = np.abs(frame.astype(int) - goal_colour).sum(-1) < 30
+        for point, expected in ((inside, True), (outside, False)):
+            col, row = int((point[0] + 1) / 2 * 64), int((1 - point[1]) / 2 * 64)
+            assert is_goal[row, col] == expected
+        assert env.unwrapped.reward(np.asarray(inside)) == 1.0
+        assert env.unwrapped.reward(np.asarray(outside)) < 0.6
 
 
 def test_shift_changes_colours_and_dynamics() -> None:

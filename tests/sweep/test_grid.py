@@ -79,6 +79,16 @@ def test_toy_cpu_table_uses_the_cpu_preset_and_a_dreamerv2_medium_replay_target(
     assert config.drqbc.batch_size == tiny.drqbc.batch_size < make_config("cpu").drqbc.batch_size
 
 
+def test_toy_centre_table_is_the_toy_cpu_schedule_on_the_centre_pair():
+    spec, cpu = named_table("toy-centre").check(), named_table("toy-cpu")
+    assert spec.pairs == (("toy_reach_centre", "toy_reach_centre_shifted"),)
+    assert (spec.preset, spec.overrides, spec.data, spec.eval_episodes) == (
+        cpu.preset, cpu.overrides, cpu.data, cpu.eval_episodes
+    )  # fmt: skip
+    assert sorted({r.algo for r in spec.runs()}) == ["coworld", "curl", "curl-cql", "dreamerv2"]
+    assert len(spec.runs()) == 4 * 3
+
+
 def test_ablation_switches_each_term_off_in_turn():
     spec = build_spec(ablation=True)
     variants = dict(spec.variants)
