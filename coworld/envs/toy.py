@@ -9,10 +9,10 @@ dense in [0, 1]: 1 inside the goal disc, falling linearly to 0 at ``REWARD_MARGI
 ``DRIFT`` per step towards -x (a "slope"), so a policy has to push right to stay on the goal.
 
 ``toy_reach_centre`` and ``toy_reach_centre_shifted``: the same two with the goal at the centre of the square
-(``CENTRE_GOAL``). With the goal in a corner the constant action towards it scores 30.7 of the expert's 46.5; with it
-at the centre every constant direction drives the dot into a wall, and the best of 16 scores 10.6 / 10.4, below the
-random policy, so any return above random needs the dot's position read from the frame
-(``benchmarks/toy_baselines.py --pair centre``).
+(``CENTRE_GOAL``). With the goal in a corner the best of 16 constant directions scores 30.7 on both corner tasks, two
+thirds of the expert's return; with it at the centre every constant direction drives the dot into a wall, and the
+best of 16 scores 10.6 / 10.4, below the random policy, so any return above random needs the dot's position read
+from the frame (20 episodes each: ``benchmarks/toy_baselines.py`` and ``--pair centre``).
 
 All: 50 steps per episode, action repeat 1, never terminate. Returns (mean over 200 episodes, seeds 0-199,
 re-measured by ``tests/envs/test_toy.py``): uniform random actions 9.6 on toy_reach and 2.3 on toy_reach_shifted
