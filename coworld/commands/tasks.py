@@ -37,7 +37,8 @@ def tasks() -> None:
     click.echo("\nepisode: agent steps per episode; repeat: simulator steps per agent step.")
     click.echo("random: mean return of uniform random actions; reference: best return known to be reachable;")
     click.echo(
-        "medium: a third of it, where `coworld collect` stops a medium-replay dataset (--stop-return overrides)."
+        "medium: a third of it (a third of the way from random where that is higher), where `coworld collect` stops"
+        " a medium-replay dataset (--stop-return overrides)."
     )
     click.echo("\nwhere the references come from:")
     sources: dict[str, list[str]] = {}
