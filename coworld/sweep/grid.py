@@ -341,11 +341,12 @@ TOY_CENTRE = ("toy_reach_centre", "toy_reach_centre_shifted")
 def toy_centre_table() -> SweepSpec:
     """The centre pair on the ``toy-cpu`` schedule: CoWorld, offline DreamerV2, CURL and CURL+CQL, 3 seeds.
 
-    On the corner pair a constant push towards the goal scores two thirds of the expert's return, so a dataset
-    collected by an agent that stopped at the medium level holds no episode better than that constant, and every
-    method can score by direction alone. With the goal at the centre no constant direction scores (the best of 16:
-    10.4 in toy_reach_centre_shifted, random 18.3, expert 48.4): the target dataset's medium level is a third of the
-    way from random to the expert (28.3), and returns above random need the dot read from the frame.
+    On the corner pair a constant push towards the goal scores two thirds of the expert's return, above the medium
+    level, so a dataset collected by an agent that stopped there shows little beyond that constant (its best
+    episodes score about the constant's mean), and every method can score by direction alone. With the goal at the
+    centre no constant direction scores (the best of 16: 10.4 in toy_reach_centre_shifted, random 18.3, expert
+    48.4): the target dataset's medium level is a third of the way from random to the expert (28.3), and returns
+    above random need the dot read from the frame.
     """
     return dataclasses.replace(toy_cpu_table(), pairs=(TOY_CENTRE,), algos=("coworld", "dreamerv2", "curl", "curl-cql"))
 
