@@ -19,6 +19,7 @@ import argparse
 
 import numpy as np
 import torch
+from toy_transfer_probe import latents  # this folder is on the path of a script run from it
 
 from coworld.agents.factory import make_agent
 from coworld.config import from_dict
@@ -56,20 +57,12 @@ def main() -> None:
 
     env = make("toy_reach", seed=0)
     env.reset(seed=0)
-    positions, latents, frames = [], [], []
-    for x in GRID:
-        for y in GRID:
-            env.unwrapped.position = np.array([x, y])
-            frame = env.unwrapped._draw()
-            policy_state = None
-            for _ in range(6):
-                _, policy_state = agent.policy(frame[None], policy_state, mode="random")
-                policy_state = (policy_state[0], torch.zeros_like(policy_state[1]))
-            positions.append((x, y))
-            latents.append(policy_state[0])
-            frames.append(frame)
-    positions = np.array(positions)
-    start = {key: torch.cat([latent[key] for latent in latents]) for key in latents[0]}
+    positions = np.array([(x, y) for x in GRID for y in GRID])
+    start = latents(agent, env, positions, mode="random")
+    frames = []
+    for position in positions:
+        env.unwrapped.position = position
+        frames.append(env.unwrapped._draw())
 
     with torch.no_grad():
         feat = wm.features(start)

@@ -32,15 +32,17 @@ from coworld.envs import make
 from coworld.training.checkpoint import load_checkpoint
 
 
-def latents(agent, env, positions: np.ndarray) -> dict[str, torch.Tensor]:
-    """The agent's latent after six frames of the dot standing at each position (no action)."""
+def latents(agent, env, positions: np.ndarray, mode: str = "eval") -> dict[str, torch.Tensor]:
+    """The agent's latent after six frames of the dot standing at each position (no action).
+
+    ``mode``: the agent's policy mode while it filters (it draws random numbers in 'random', none in 'eval')."""
     out = []
     for position in positions:
         env.unwrapped.position = np.asarray(position, np.float64)
         frame = env.unwrapped._draw()
         state = None
         for _ in range(6):
-            _, state = agent.policy(frame[None], state, mode="eval")
+            _, state = agent.policy(frame[None], state, mode=mode)
             state = (state[0], torch.zeros_like(state[1]))
         out.append(state[0])
     return {key: torch.cat([latent[key] for latent in out]) for key in out[0]}

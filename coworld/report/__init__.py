@@ -34,7 +34,11 @@ class Report:
     @property
     def runs(self) -> int:
         """Runs, without the dataset collectors nobody evaluated (they are not runs that are still to finish)."""
-        return len(self.results) - len(_collectors(self.results))
+        return _run_count(self.results)
+
+
+def _run_count(results: list[RunResult]) -> int:
+    return len(results) - len(_collectors(results))
 
 
 def _collectors(results: list[RunResult]) -> list[RunResult]:
@@ -83,13 +87,12 @@ def _markdown(root: Path, results: list[RunResult], figures: list[tuple[str, str
 
     finished = [r for r in results if r.final_return is not None]
     collectors = _collectors(results)
-    runs = len(results) - len(collectors)
     lines = [
         f"# Results: {root}",
         "",
-        f"{count(runs, 'run')}, {len(finished)} finished (with eval.json). Final return: mean ± std over seeds of"
-        " each run's final evaluation; best mean per row in bold; (n=k) where a cell has fewer seeds than the"
-        " others. Aggregate: interquartile mean of normalized scores, (R - random) / (reference - random) per"
+        f"{count(_run_count(results), 'run')}, {len(finished)} finished (with eval.json). Final return: mean ± std"
+        " over seeds of each run's final evaluation; best mean per row in bold; (n=k) where a cell has fewer seeds"
+        " than the others. Aggregate: interquartile mean of normalized scores, (R - random) / (reference - random) per"
         " target task, over all runs of all tasks, with its 95% stratified-bootstrap confidence interval.",
         "",
     ]
