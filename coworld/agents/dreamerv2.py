@@ -288,6 +288,9 @@ class DreamerV2:
         ):
             if module is not None:
                 module.compile()
+        # The world model's loss calls these rather than the conv stacks' forward.
+        wm.encoder.from_phases = torch.compile(wm.encoder.from_phases)
+        wm.decoder.phases = torch.compile(wm.decoder.phases)
 
 
 def _optimizer(params: Any, *, lr: float, eps: float, decay: float) -> torch.optim.AdamW:

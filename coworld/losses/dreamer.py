@@ -8,8 +8,9 @@ reduce them and apply the config's scales in one place.
 
 from __future__ import annotations
 
+from typing import Any
+
 import torch
-import torch.nn.functional as F
 from torch import Tensor
 
 from coworld.models.distributions import Bernoulli, TwoHotSymlog, UnitGaussian, categorical_kl
@@ -25,17 +26,35 @@ __all__ = [
 ]
 
 
+class _HalfSquaredError(torch.autograd.Function):
+    """``0.5 * sum((pred - target)^2)`` over the last three dimensions, with the gradient ``pred - target`` kept
+    from the forward pass: one pass each way, in the inputs' memory order. (``F.mse_loss``'s backward first
+    zero-fills a contiguous tensor, which the channels-last convolution before it then copies back.)"""
+
+    @staticmethod
+    def forward(ctx: Any, pred: Tensor, target: Tensor) -> Tensor:
+        diff = pred - target
+        ctx.save_for_backward(diff)
+        return 0.5 * (diff * diff).sum(dim=(-3, -2, -1))
+
+    @staticmethod
+    def backward(ctx: Any, grad: Tensor) -> tuple[Tensor | None, Tensor | None]:
+        (diff,) = ctx.saved_tensors
+        grad_pred = diff * grad[..., None, None, None]
+        return grad_pred, -grad_pred if ctx.needs_input_grad[1] else None
+
+
 def image_loss(pred: UnitGaussian | Tensor, target: Tensor) -> Tensor:
     """Image negative log-likelihood under a unit-variance Gaussian: ``0.5 * sum_{C,H,W} (pred - target)^2``.
 
     ``pred`` is the decoder's mean image (or its :class:`UnitGaussian`), ``(B, T, C, H, W)``; ``target`` the
-    observed image scaled to ``[-0.5, 0.5]``, same shape. Returns ``(B, T)``; the constant
-    ``0.5 * log(2 pi)`` per pixel is dropped. (``UnitGaussian.log_prob``'s value, computed in two passes over the
-    pixels instead of five: images are the largest tensors of a world-model update.)
+    observed image scaled to ``[-0.5, 0.5]``, same shape (or both as their 2 x 2 phases, ``(B, T, 4 C, H / 2,
+    W / 2)``: the sum is the same). Returns ``(B, T)``; the constant ``0.5 * log(2 pi)`` per pixel is dropped.
+    (``UnitGaussian.log_prob``'s value, computed in one pass over the pixels each way instead of five: images are
+    the largest tensors of a world-model update.)
     """
     mean = pred.mean if isinstance(pred, UnitGaussian) else pred
-    squared = F.mse_loss(mean.float(), target.float(), reduction="none")
-    return 0.5 * squared.sum(dim=(-3, -2, -1))
+    return _HalfSquaredError.apply(mean.float(), target.float())
 
 
 def reward_loss(pred: UnitGaussian | TwoHotSymlog | Tensor, target: Tensor) -> Tensor:

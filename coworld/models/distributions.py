@@ -26,9 +26,35 @@ __all__ = [
     "symlog",
     "categorical_kl",
     "head_distribution",
+    "log_softmax",
+    "softmax",
 ]
 
 _LOG_SQRT_2PI = 0.5 * math.log(2.0 * math.pi)
+
+_SHORT_LAST_DIM = 16
+"""float32 lanes of an AVX-512 register: PyTorch's CPU (log-)softmax along a last dimension shorter than this is
+about 3x slower than the same reduction along another dimension (benchmarks/RESULTS.md, issue 19)."""
+
+
+def _transposed(x: Tensor) -> bool:
+    """Whether :func:`softmax` and :func:`log_softmax` reduce ``x`` over a transposed copy."""
+    return x.device.type == "cpu" and x.ndim >= 2 and x.shape[-1] < _SHORT_LAST_DIM and x.shape[-2] > 1
+
+
+def softmax(x: Tensor) -> Tensor:
+    """``torch.softmax(x, -1)``; on a CPU with fewer than 16 classes (DreamerV2's 8 x 8 latents of the small
+    presets), computed along dimension -2 of a transposed copy and returned as a transposed view."""
+    if _transposed(x):
+        return torch.softmax(x.transpose(-1, -2).contiguous(), -2).transpose(-1, -2)
+    return torch.softmax(x, -1)
+
+
+def log_softmax(x: Tensor) -> Tensor:
+    """``torch.log_softmax(x, -1)``, computed as :func:`softmax` is."""
+    if _transposed(x):
+        return torch.log_softmax(x.transpose(-1, -2).contiguous(), -2).transpose(-1, -2)
+    return torch.log_softmax(x, -1)
 
 
 class UnitGaussian:
@@ -158,7 +184,7 @@ class OneHotCategorical:
     @property
     def probs(self) -> Tensor:
         """Class probabilities, shape ``(..., S, K)``."""
-        return torch.softmax(self.logits, dim=-1)
+        return softmax(self.logits)
 
     @property
     def mode(self) -> Tensor:
@@ -175,14 +201,15 @@ class OneHotCategorical:
         """
         probs = self.probs
         if noise is None:
-            noise = torch.empty_like(probs, dtype=torch.float32).exponential_()
-        index = (probs.detach().float() / noise).argmax(dim=-1)
+            noise = torch.empty(probs.shape, device=probs.device).exponential_()  # contiguous, as multinomial's
+        race = torch.empty(probs.shape, device=probs.device)  # contiguous: argmax along a strided dim is slow
+        index = torch.div(probs.detach().float(), noise, out=race).argmax(dim=-1)
         sample = F.one_hot(index, probs.shape[-1]).to(probs.dtype)
         return sample + probs - probs.detach()
 
     def entropy(self) -> Tensor:
         """Entropy summed over the ``S`` variables, shape ``(...)``."""
-        log_probs = torch.log_softmax(self.logits, dim=-1)
+        log_probs = log_softmax(self.logits)
         return -(log_probs.exp() * log_probs).sum(dim=(-2, -1))
 
 
@@ -191,8 +218,8 @@ def categorical_kl(lhs_logits: Tensor, rhs_logits: Tensor) -> Tensor:
 
     Shapes: ``(..., S, K)`` each, returns ``(...)``.
     """
-    lhs_log = torch.log_softmax(lhs_logits.float(), dim=-1)
-    rhs_log = torch.log_softmax(rhs_logits.float(), dim=-1)
+    lhs_log = log_softmax(lhs_logits.float())
+    rhs_log = log_softmax(rhs_logits.float())
     return (lhs_log.exp() * (lhs_log - rhs_log)).sum(dim=(-2, -1))
 
 

@@ -20,7 +20,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from coworld.models.distributions import OneHotCategorical
+from coworld.models.distributions import OneHotCategorical, log_softmax, softmax
 from coworld.models.networks import LayerNormGRUCell, glorot_init
 
 __all__ = ["RSSM", "State", "stack_states"]
@@ -155,9 +155,9 @@ class RSSM(nn.Module):
         """Raw ``(N, S * K)`` outputs to normalised log-probabilities ``(N, S, K)``, float32, with unimix."""
         logits = raw.float().reshape(raw.shape[0], self.stoch, self.classes)
         if self.unimix > 0.0:
-            probs = (1.0 - self.unimix) * torch.softmax(logits, -1) + self.unimix / self.classes
+            probs = (1.0 - self.unimix) * softmax(logits) + self.unimix / self.classes
             return probs.log()
-        return torch.log_softmax(logits, -1)
+        return log_softmax(logits)
 
     def _sample(self, logits: Tensor, sample: bool, noise: Tensor | None = None) -> Tensor:
         """Straight-through one-hot sample (``sample``, with ``noise`` if given) or the one-hot mode, ``(N, S, K)``."""

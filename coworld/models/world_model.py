@@ -20,10 +20,10 @@ from torch import Tensor, nn
 from coworld.config import WorldModelConfig
 from coworld.losses.dreamer import discount_loss, image_loss, kl_balanced_loss, reward_loss
 from coworld.models.distributions import TWOHOT_BINS, Bernoulli, TwoHotSymlog, UnitGaussian, head_distribution
-from coworld.models.networks import MLP, ConvDecoder, ConvEncoder, check_image_shape
+from coworld.models.networks import MLP, ConvDecoder, ConvEncoder, check_image_shape, space_to_depth
 from coworld.models.rssm import RSSM, State
 
-__all__ = ["DiscountHead", "ScalarHead", "WorldModel", "preprocess_image"]
+__all__ = ["DiscountHead", "ScalarHead", "WorldModel", "preprocess_image", "preprocess_phases"]
 
 
 def preprocess_image(image: Tensor) -> Tensor:
@@ -33,6 +33,16 @@ def preprocess_image(image: Tensor) -> Tensor:
     the scaling runs in place on the one new float tensor.
     """
     return image.movedim(-1, -3).to(torch.float32, copy=True).div_(255.0).sub_(0.5)
+
+
+def preprocess_phases(image: Tensor) -> Tensor:
+    """uint8 ``(..., H, W, C)`` to the float32 2 x 2 phases ``(..., 4 C, H / 2, W / 2)`` in ``[-0.5, 0.5]``.
+
+    :func:`~coworld.models.networks.space_to_depth` of :func:`preprocess_image`'s values (channels last in
+    memory): the world model's loss feeds them to :meth:`ConvEncoder.from_phases` and compares them with
+    :meth:`ConvDecoder.phases`. The rearrangement runs on the uint8 bytes, before the one float copy.
+    """
+    return space_to_depth(image).to(torch.float32).div_(255.0).sub_(0.5).movedim(-1, -3)
 
 
 class ScalarHead(nn.Module):
@@ -119,11 +129,11 @@ class WorldModel(nn.Module):
         ``logits``/``stoch (B, T, S, K)``) and the embeddings ``(B, T, E)``. The recurrent state and the previous
         action are zeroed where ``is_first``; ``state`` (batch ``(B,)``) continues from an earlier chunk.
         """
-        return self._observe(preprocess_image(batch["image"]), batch, state)
+        return self._observe(preprocess_phases(batch["image"]), batch, state)
 
-    def _observe(self, image: Tensor, batch: dict[str, Tensor], state: State | None) -> tuple[State, State, Tensor]:
-        """:meth:`observe` from images already preprocessed, float ``(B, T, C, H, W)``."""
-        embed = self.encoder(image)
+    def _observe(self, phases: Tensor, batch: dict[str, Tensor], state: State | None) -> tuple[State, State, Tensor]:
+        """:meth:`observe` from images already preprocessed into phases (:func:`preprocess_phases`)."""
+        embed = self.encoder.from_phases(phases)
         post, prior = self.rssm.observe(embed, batch["action"], batch["is_first"], state)
         return post, prior, embed
 
@@ -140,11 +150,12 @@ class WorldModel(nn.Module):
         """
         cfg = self.config
         batch_size, length = batch["action"].shape[:2]
-        image = preprocess_image(batch["image"])  # the encoder's input and the decoder's target
-        post, prior, embed = self._observe(image, batch, None)
+        phases = preprocess_phases(batch["image"])  # the encoder's input and the decoder's target
+        post, prior, embed = self._observe(phases, batch, None)
         feat = self.features(post)
         terms: dict[str, Tensor] = {
-            "image": image_loss(self.decoder(feat).float(), image),
+            # A sum over pixels: the 2 x 2 phases give the loss of the whole images, without interleaving them.
+            "image": image_loss(self.decoder.phases(feat).float(), phases),
             "reward": reward_loss(self.reward_head(feat), batch["reward"].float()),
         }
         if self.discount_head is not None:

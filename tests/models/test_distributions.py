@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+import pytest
 import torch
 import torch.nn.functional as F
 
@@ -14,6 +15,8 @@ from coworld.models.distributions import (
     TruncatedNormal,
     UnitGaussian,
     categorical_kl,
+    log_softmax,
+    softmax,
 )
 
 
@@ -141,3 +144,16 @@ def test_twohot_mean_and_log_prob_known_answers() -> None:
         (-TwoHotSymlog(logits).log_prob(torch.tensor([30.0]))).sum().backward()
         opt.step()
     assert abs(float(TwoHotSymlog(logits).mean) - 30.0) < 1.0  # from 0
+
+
+@pytest.mark.parametrize("shape", [(5, 8, 8), (3, 4, 7, 3), (6, 4, 32), (9, 1, 8), (8,)])
+def test_softmax_helpers_are_torch_softmax_with_its_gradient(shape: tuple[int, ...]) -> None:
+    """The (log-)softmax that short class dimensions take through a transposed copy (and every other shape
+    straight) has torch's values and gradients."""
+    x = torch.randn(*shape, dtype=torch.float64, requires_grad=True)
+    grad = torch.randn(*shape, dtype=torch.float64)
+    for mine, theirs in ((softmax, torch.softmax), (log_softmax, torch.log_softmax)):
+        got, want = mine(x), theirs(x, -1)
+        assert got.shape == want.shape
+        torch.testing.assert_close(got, want)
+        torch.testing.assert_close(torch.autograd.grad(got, x, grad)[0], torch.autograd.grad(want, x, grad)[0])

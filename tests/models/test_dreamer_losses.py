@@ -79,6 +79,14 @@ def test_image_reward_discount_terms() -> None:
     expected = 0.5 * ((pred - target) ** 2).sum(dim=(2, 3, 4))
     torch.testing.assert_close(image_loss(pred, target), expected)
     torch.testing.assert_close(image_loss(UnitGaussian(pred, 3), target), expected)
+    # Its own backward: the gradient of the summed squared error, to the prediction and to a target that needs one.
+    pred32 = pred.clone().requires_grad_()
+    target32 = target.clone().requires_grad_()
+    weight = torch.randn(2, 3)
+    got = torch.autograd.grad((image_loss(pred32, target32) * weight).sum(), (pred32, target32))
+    want = torch.autograd.grad((0.5 * ((pred32 - target32) ** 2).sum((2, 3, 4)) * weight).sum(), (pred32, target32))
+    for a, b in zip(got, want, strict=True):
+        torch.testing.assert_close(a, b)
     mean, reward = torch.randn(2, 3), torch.randn(2, 3)
     torch.testing.assert_close(reward_loss(mean, reward), 0.5 * (mean - reward) ** 2)
     torch.testing.assert_close(reward_loss(UnitGaussian(mean), reward), 0.5 * (mean - reward) ** 2)

@@ -13,8 +13,12 @@ from coworld.models.networks import (
     ConvEncoder,
     LayerNormGRUCell,
     check_image_shape,
+    conv2d_stride2,
+    depth_to_space,
     frozen_parameters,
+    space_to_depth,
 )
+from coworld.models.world_model import preprocess_image, preprocess_phases
 
 
 def test_encoder_maps_64x64_images_to_flat_embedding(tiny: Config) -> None:
@@ -83,3 +87,55 @@ def test_frozen_parameters_lets_gradient_through_but_not_into_weights() -> None:
     assert x.grad is not None and x.grad.abs().sum() > 0
     assert all(p.grad is None for p in mlp.parameters())
     assert all(p.requires_grad for p in mlp.parameters())
+
+
+def test_space_to_depth_puts_each_2x2_phase_in_channels_and_depth_to_space_undoes_it() -> None:
+    image = torch.randint(0, 256, (2, 3, 6, 4, 3), dtype=torch.uint8)
+    phases = space_to_depth(image)
+    assert phases.shape == (2, 3, 3, 2, 12) and phases.dtype == torch.uint8
+    for p in range(2):
+        for s in range(2):
+            channels = slice(6 * p + 3 * s, 6 * p + 3 * s + 3)
+            assert torch.equal(phases[..., channels], image[..., p::2, s::2, :])
+    flat = phases.reshape(6, 3, 2, 12).permute(0, 3, 1, 2)  # channels first
+    assert torch.equal(depth_to_space(flat).permute(0, 2, 3, 1), image.reshape(6, 6, 4, 3))
+    # The world model's two preprocessings hold the same numbers.
+    expected = space_to_depth(preprocess_image(image).movedim(-3, -1)).movedim(-1, -3)
+    assert torch.equal(preprocess_phases(image), expected)
+
+
+def test_encoder_from_phases_and_decoder_phases_match_the_image_paths(tiny: Config) -> None:
+    torch.manual_seed(0)
+    depth = tiny.world_model.cnn_depth
+    encoder = ConvEncoder(channels=3, depth=depth).double()
+    image = torch.randint(0, 256, (2, 3, 64, 64, 3), dtype=torch.uint8)
+    phases = preprocess_phases(image).double().requires_grad_()
+    plain = preprocess_image(image).double().requires_grad_()
+    grad = torch.randn(2, 3, encoder.embed_size, dtype=torch.float64)
+    got, want = encoder.from_phases(phases), encoder(plain)
+    torch.testing.assert_close(got, want)
+    params = list(encoder.parameters())
+    got_grads = torch.autograd.grad(got, [phases, *params], grad)
+    want_grads = torch.autograd.grad(want, [plain, *params], grad)
+    torch.testing.assert_close(got_grads[0], space_to_depth(want_grads[0].movedim(-3, -1)).movedim(-1, -3))
+    for a, b in zip(got_grads[1:], want_grads[1:], strict=True):
+        torch.testing.assert_close(a, b)
+    decoder = ConvDecoder(feat_size=17, channels=3, depth=depth).double()
+    feat = torch.randn(2, 3, 17, dtype=torch.float64)
+    out = decoder.phases(feat)
+    assert out.shape == (2, 3, 12, 32, 32)
+    torch.testing.assert_close(out, space_to_depth(decoder(feat).movedim(-3, -1)).movedim(-1, -3))
+
+
+@pytest.mark.parametrize(("size", "bias"), [(31, True), (14, True), (6, False), (9, True)])
+def test_conv2d_stride2_is_the_strided_convolution_with_its_gradients(size: int, bias: bool) -> None:
+    x = torch.randn(2, 3, size, size + 1, dtype=torch.float64).contiguous(memory_format=torch.channels_last)
+    x.requires_grad_()
+    weight = torch.randn(5, 3, 4, 4, dtype=torch.float64, requires_grad=True)
+    b = torch.randn(5, dtype=torch.float64, requires_grad=True) if bias else None
+    inputs = [x, weight] + ([b] if bias else [])
+    got, want = conv2d_stride2(x, weight, b), torch.nn.functional.conv2d(x, weight, b, stride=2)
+    torch.testing.assert_close(got, want)
+    grad = torch.randn_like(want)
+    for a, c in zip(torch.autograd.grad(got, inputs, grad), torch.autograd.grad(want, inputs, grad), strict=True):
+        torch.testing.assert_close(a, c)
