@@ -60,8 +60,9 @@ class DreamerV2:
     """DreamerV2 (paper Sec. 3.2.1): world-model learning plus actor-critic learning in imagination.
 
     ``device`` None uses ``config.device``; ``config.precision`` picks autocast; ``config.compile`` compiles the
-    networks in place with ``torch.compile`` (the first updates then wait for compilation: about a minute for
-    the tiny preset on one CPU thread).
+    world model's loss and the imagination rollout whole, and the networks acting calls, with ``torch.compile``
+    (the first updates then wait for compilation: on one CPU thread, about 4 minutes at the tiny sizes with batch
+    16 x 32, about 30 s once inductor's on-disk cache holds the graphs).
     """
 
     def __init__(
@@ -271,8 +272,18 @@ class DreamerV2:
         return torch.autocast(device_type=self.device.type, dtype=self.autocast_dtype)
 
     def _compile(self) -> None:
-        """Compile the per-step networks in place (state-dict keys unchanged)."""
+        """Compile the update's two loops whole, and the per-step networks that acting calls, in place
+        (state-dict keys unchanged).
+
+        The world model's loss (encoder, the RSSM's observe loop, decoder, heads) and the imagination rollout
+        are each one graph, so the small ops of every step fuse (on a CPU the networks compiled alone gained 2%;
+        benchmarks/RESULTS.md, issue 19). Random numbers come from the eager generator (inductor's
+        ``fallback_random``), so a compiled agent draws what an eager one draws.
+        """
         wm, ac = self.world_model, self.actor_critic
+        options = {"fallback_random": True}
+        wm.loss = torch.compile(wm.loss, options=options)  # type: ignore[method-assign]
+        ac.imagine = torch.compile(ac.imagine, options=options)  # type: ignore[method-assign]
         for module in (
             wm.encoder,
             wm.decoder,
@@ -288,9 +299,6 @@ class DreamerV2:
         ):
             if module is not None:
                 module.compile()
-        # The world model's loss calls these rather than the conv stacks' forward.
-        wm.encoder.from_phases = torch.compile(wm.encoder.from_phases)
-        wm.decoder.phases = torch.compile(wm.decoder.phases)
 
 
 def _optimizer(params: Any, *, lr: float, eps: float, decay: float) -> torch.optim.AdamW:
