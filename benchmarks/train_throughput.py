@@ -9,6 +9,8 @@ Examples::
     python benchmarks/train_throughput.py --preset paper --device cuda --compare   # fp32 / bf16, eager / compiled
     python benchmarks/train_throughput.py --threads 1 --set train.batch_size=16 --set train.seq_len=32 \
         --interleave /tmp/base --blocks 4 --updates 6    # this tree against another checkout, side by side
+    python benchmarks/train_throughput.py --threads 1 --interleave /tmp/base --dreamerv3 /path/to/dreamerv3-torch \
+        --dreamerv3-python /path/to/python --set train.batch_size=16 --set train.seq_len=32   # and the peer
 
 Batches are random uint8 frames (throughput does not depend on content). Timings are medians over
 ``--updates`` measured steps after ``--warmup`` steps; CUDA work is synchronised before each clock read.
@@ -22,7 +24,10 @@ Batches are random uint8 frames (throughput does not depend on content). Timings
 checkout at ``PATH`` in alternating fresh processes, ``--blocks`` rounds, each process timing ``--updates`` calls
 after ``--warmup``; it prints the min and median seconds per update of each side and block with the 1-minute load
 average read before the block. This tree runs twice per block: with the CLI's malloc settings
-(:func:`coworld.allocator.keep_freed_memory`, as every ``coworld`` command runs) and without them.
+(:func:`coworld.allocator.keep_freed_memory`, as every ``coworld`` command runs) and without them. With
+``--dreamerv3 PATH`` each block also times NM512/dreamerv3-torch's update from its checkout at ``PATH`` (its
+``Dreamer._train``: world model, then behaviour in imagination), at the tiny preset's sizes in its config names
+(those benchmarks/learning_side_by_side.py matched) and the same batch; its code is run, not copied.
 """
 
 from __future__ import annotations
@@ -33,6 +38,7 @@ import os
 import statistics
 import subprocess
 import sys
+import textwrap
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
@@ -40,9 +46,10 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from learning_side_by_side import REFERENCE_NESTED, REFERENCE_SETTINGS
 
 from coworld.agents.dreamerv2 import DreamerV2
-from coworld.config import make_config
+from coworld.config import Config, make_config
 from coworld.models.actor_critic import flatten_states
 from coworld.models.networks import frozen_parameters
 from coworld.training.run import resolve_device
@@ -185,10 +192,90 @@ def worker(args: argparse.Namespace) -> None:
     print(json.dumps(out))
 
 
+DREAMERV3_DRIVER = textwrap.dedent(
+    """
+    # Written by coworld's benchmarks/train_throughput.py: times NM512/dreamerv3-torch's update (world model, then
+    # behaviour in imagination, as its Dreamer._train) on a random batch; prints JSON like our --worker.
+    import argparse, json, pathlib, sys, time, types
+    reference, settings = sys.argv[1], json.loads(sys.argv[2])
+    sys.path.insert(0, reference)
+    import numpy as np, ruamel.yaml, torch
+    import models, tools
+    run = settings.pop("run")
+    torch.set_num_threads(run["threads"])
+    config = ruamel.yaml.YAML(typ="safe").load((pathlib.Path(reference) / "configs.yaml").read_text())["defaults"]
+    for key, value in settings.items():
+        if isinstance(value, dict):
+            config[key].update(value)
+        else:
+            config[key] = value
+    parser = argparse.ArgumentParser()
+    for key, value in sorted(config.items()):
+        kind = tools.args_type(value)
+        parser.add_argument(f"--{key}", type=kind, default=kind(value))
+    config = parser.parse_args([])
+    config.num_actions = run["action_size"]
+    tools.set_seed_everywhere(0)
+    space = types.SimpleNamespace(spaces={"image": types.SimpleNamespace(shape=(64, 64, 3))})
+    wm = models.WorldModel(space, None, 0, config).to(config.device)
+    behavior = models.ImagBehavior(config, wm).to(config.device)
+    wm.requires_grad_(False)  # as its main() does; _train enables what it trains
+    behavior.requires_grad_(False)
+    rng = np.random.default_rng(0)
+    batch, length, actions = config.batch_size, config.batch_length, config.num_actions
+    first = np.zeros((batch, length), np.float32)
+    first[:, 0] = 1.0
+    data = {
+        "image": rng.integers(0, 256, (batch, length, 64, 64, 3), dtype=np.uint8),
+        "action": rng.uniform(-1, 1, (batch, length, actions)).astype(np.float32),
+        "reward": rng.normal(size=(batch, length)).astype(np.float32),
+        "discount": np.ones((batch, length), np.float32),
+        "is_first": first,
+        "is_terminal": np.zeros((batch, length), np.float32),
+    }
+
+    def update():
+        post, _, _ = wm._train(data)
+        reward = lambda f, s, a: wm.heads["reward"](wm.dynamics.get_feat(s)).mode()
+        behavior._train(post, reward)
+
+    for _ in range(run["warmup"]):
+        update()
+    times = []
+    for _ in range(run["updates"]):
+        start = time.perf_counter()
+        update()
+        times.append(time.perf_counter() - start)
+    print(json.dumps({"coworld": reference, "dreamerv2": times}))
+    """
+)
+
+
+def dreamerv3_settings(config: Config) -> dict[str, object]:
+    """dreamerv3-torch's config at our network sizes and batch (the tiny and cpu presets' sizes, which
+    benchmarks/learning_side_by_side.py matched in its names); raises if ``config`` has other sizes."""
+    wm, ac = config.world_model, config.actor_critic
+    ours = (wm.cnn_depth, wm.deter, wm.hidden, wm.stoch, wm.classes, wm.mlp_units, ac.units, ac.horizon)
+    matched = (8, 64, 64, 8, 8, 64, 64, 10)
+    if ours != matched:
+        raise SystemExit(f"--dreamerv3 compares at the tiny preset's sizes {matched}, not {ours}")
+    keys = ("dyn_deter", "dyn_hidden", "dyn_stoch", "dyn_discrete", "units", "model_lr", "imag_horizon", "compile")
+    settings: dict[str, object] = {key: REFERENCE_SETTINGS[key] for key in keys}
+    settings.update(REFERENCE_NESTED)
+    settings.update(batch_size=config.train.batch_size, batch_length=config.train.seq_len, precision=32, device="cpu")
+    return settings
+
+
 def interleave(args: argparse.Namespace) -> None:
     """Alternate worker processes of this tree and of ``args.interleave``; print min / median per block."""
     here = Path(__file__).resolve().parent.parent
     sides = [("base", Path(args.interleave).resolve(), False), ("new", here, False), ("new+malloc", here, True)]
+    if args.dreamerv3:
+        sides.append(("dreamerv3-torch", Path(args.dreamerv3).resolve(), False))
+        overrides = {"device": args.device, **dict(item.split("=", 1) for item in args.set)}
+        peer = dreamerv3_settings(make_config(args.preset, overrides))
+        run = {"threads": args.threads, "updates": args.updates, "warmup": args.warmup}
+        peer["run"] = {**run, "action_size": args.action_size}
     common = ["--threads", str(args.threads), "--updates", str(args.updates), "--warmup", str(args.warmup)]
     common += ["--preset", args.preset, "--device", args.device, "--algo", args.algo]
     common += ["--action-size", str(args.action_size)] + [f"--set={item}" for item in args.set]
@@ -197,11 +284,14 @@ def interleave(args: argparse.Namespace) -> None:
         for label, tree, tuned in sides:
             with open("/proc/loadavg") as f:
                 load = float(f.read().split()[0])
-            env = {**os.environ, "PYTHONPATH": str(tree)}
-            command = [sys.executable, __file__, "--worker", *common] + (["--allocator"] if tuned else [])
-            result = json.loads(
-                subprocess.run(command, env=env, cwd=tree, capture_output=True, check=True, text=True).stdout
-            )
+            if label == "dreamerv3-torch":
+                env = {**os.environ, "OMP_NUM_THREADS": str(args.threads)}
+                command = [args.dreamerv3_python, "-c", DREAMERV3_DRIVER, str(tree), json.dumps(peer)]
+            else:
+                env = {**os.environ, "PYTHONPATH": str(tree)}
+                command = [sys.executable, __file__, "--worker", *common] + (["--allocator"] if tuned else [])
+            stdout = subprocess.run(command, env=env, cwd=tree, capture_output=True, check=True, text=True).stdout
+            result = json.loads(stdout.strip().splitlines()[-1])  # the peer prints its model's shapes first
             assert Path(result.pop("coworld")) == tree, "the worker imported another checkout"
             for name, times in result.items():
                 rows.append((block, label, name, load, min(times), statistics.median(times)))
@@ -215,6 +305,8 @@ def interleave(args: argparse.Namespace) -> None:
         base = statistics.median(r[5] for r in rows if r[2] == name and r[1] == "base")
         for label, _, _ in sides:
             mine = [r for r in rows if r[2] == name and r[1] == label]
+            if not mine:  # the peer times the DreamerV2 update only
+                continue
             median = statistics.median(r[5] for r in mine)
             print(f"{name:<16}{label:<12}{min(r[4] for r in mine):>20.3f}{median:>25.3f}{base / median:>8.2f}")
     if args.json:
@@ -243,6 +335,14 @@ def main() -> None:
     parser.add_argument("--set", action="append", default=[], help="config override KEY=VALUE (repeatable)")
     parser.add_argument("--interleave", metavar="PATH", help="time against the coworld checkout at PATH")
     parser.add_argument("--blocks", type=int, default=4, help="alternating rounds of --interleave")
+    parser.add_argument(
+        "--dreamerv3",
+        metavar="PATH",
+        help="with --interleave, also time NM512/dreamerv3-torch's update at matched sizes from its checkout at PATH",
+    )
+    parser.add_argument(
+        "--dreamerv3-python", default=sys.executable, help="interpreter for --dreamerv3 (needs torch, ruamel.yaml)"
+    )
     parser.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--allocator", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
