@@ -296,11 +296,11 @@ def interleave(args: argparse.Namespace) -> None:
             for name, times in result.items():
                 rows.append((block, label, name, load, min(times), statistics.median(times)))
                 print(
-                    f"block {block} {label:<11}{name:<16} load {load:5.2f}  min {min(times):.3f} s  median "
+                    f"block {block} {label:<16}{name:<16} load {load:5.2f}  min {min(times):.3f} s  median "
                     f"{statistics.median(times):.3f} s",
                     flush=True,
                 )
-    print(f"\n{'update':<16}{'side':<12}{'min s (best block)':>20}{'median of block medians':>25}{'x base':>8}")
+    print(f"\n{'update':<16}{'side':<16}{'min s (best block)':>20}{'median of block medians':>25}{'x base':>8}")
     for name in dict.fromkeys(row[2] for row in rows):
         base = statistics.median(r[5] for r in rows if r[2] == name and r[1] == "base")
         for label, _, _ in sides:
@@ -308,7 +308,7 @@ def interleave(args: argparse.Namespace) -> None:
             if not mine:  # the peer times the DreamerV2 update only
                 continue
             median = statistics.median(r[5] for r in mine)
-            print(f"{name:<16}{label:<12}{min(r[4] for r in mine):>20.3f}{median:>25.3f}{base / median:>8.2f}")
+            print(f"{name:<16}{label:<16}{min(r[4] for r in mine):>20.3f}{median:>25.3f}{base / median:>8.2f}")
     if args.json:
         keys = ("block", "side", "update", "load", "min_s", "median_s")
         Path(args.json).write_text(json.dumps([dict(zip(keys, row, strict=True)) for row in rows], indent=2))
