@@ -10,7 +10,7 @@ Examples::
     python benchmarks/train_throughput.py --threads 1 --set train.batch_size=16 --set train.seq_len=32 \
         --interleave /tmp/base --blocks 4 --updates 6    # this tree against another checkout, side by side
     python benchmarks/train_throughput.py --threads 1 --interleave /tmp/base --dreamerv3 /path/to/dreamerv3-torch \
-        --dreamerv3-python /path/to/python --set train.batch_size=16 --set train.seq_len=32   # and the peer
+        --peer-python /path/to/python --set train.batch_size=16 --set train.seq_len=32   # and a peer
 
 Batches are random uint8 frames (throughput does not depend on content). Timings are medians over
 ``--updates`` measured steps after ``--warmup`` steps; CUDA work is synchronised before each clock read.
@@ -27,7 +27,11 @@ average read before the block. This tree runs twice per block: with the CLI's ma
 (:func:`coworld.allocator.keep_freed_memory`, as every ``coworld`` command runs) and without them. With
 ``--dreamerv3 PATH`` each block also times NM512/dreamerv3-torch's update from its checkout at ``PATH`` (its
 ``Dreamer._train``: world model, then behaviour in imagination), at the tiny preset's sizes in its config names
-(those benchmarks/learning_side_by_side.py matched) and the same batch; its code is run, not copied.
+(those benchmarks/learning_side_by_side.py matched) and the same batch; ``--authors PATH`` the CoWorld authors'
+release's (its ``WorldModel._train`` in source pre-training mode, a plain DreamerV2 step, then
+``ImagBehavior._train``) at its own DMC config (cnn 32, deter 200, continuous latents of 50, horizon 15) with our
+batch. Their code is run from their checkouts, not copied; ``--peer-python`` names an interpreter with torch and
+ruamel.yaml.
 """
 
 from __future__ import annotations
@@ -251,6 +255,62 @@ DREAMERV3_DRIVER = textwrap.dedent(
 )
 
 
+AUTHORS_DRIVER = textwrap.dedent(
+    """
+    # Written by coworld's benchmarks/train_throughput.py: times the CoWorld authors' release's DreamerV2 update (its
+    # WorldModel._train in the source-domain pre-training mode, a plain DreamerV2 step, then ImagBehavior._train, as
+    # its Dreamer._train) on a random batch at its DMC config; prints JSON like our --worker.
+    import argparse, json, pathlib, sys, time, types
+    reference, run = sys.argv[1], json.loads(sys.argv[2])
+    sys.path.insert(0, reference)
+    sys.modules.setdefault("wandb", types.ModuleType("wandb"))  # imported by its tools.py, unused here
+    import numpy as np, ruamel.yaml, torch
+    import models, tools
+    torch.set_num_threads(run["threads"])
+    configs = ruamel.yaml.YAML(typ="safe").load((pathlib.Path(reference) / "co_configs.yaml").read_text())
+    defaults = {**configs["defaults"], **configs["dmc"]}
+    defaults.update(device="cpu", precision=32, sc_domain=True, pre_train=True)
+    defaults.update(batch_size=run["batch_size"], batch_length=run["batch_length"])
+    parser = argparse.ArgumentParser()
+    for key, value in sorted(defaults.items()):
+        kind = tools.args_type(value)
+        parser.add_argument(f"--{key}", type=kind, default=kind(value))
+    config = parser.parse_args([])
+    config.act = getattr(torch.nn, config.act)
+    config.num_actions = run["action_size"]
+    for key in ("actor_entropy", "actor_state_entropy", "imag_gradient_mix"):  # as its Dreamer.__init__ does
+        config.__dict__[key] = lambda x=getattr(config, key): tools.schedule(x, 0)
+    torch.manual_seed(0)
+    wm = models.WorldModel(0, config).to("cpu")
+    behavior = models.ImagBehavior(config, wm).to("cpu")
+    wm.requires_grad_(False)
+    behavior.requires_grad_(False)
+    rng = np.random.default_rng(0)
+    batch, length, actions = config.batch_size, config.batch_length, config.num_actions
+    data = {
+        "image": rng.integers(0, 256, (batch, length, 64, 64, 3), dtype=np.uint8),
+        "action": rng.uniform(-1, 1, (batch, length, actions)).astype(np.float32),
+        "reward": rng.normal(size=(batch, length)).astype(np.float32),
+        "discount": np.ones((batch, length), np.float32),
+    }
+
+    def update():
+        post, _, _ = wm._train(data)
+        reward = lambda f, s, a: wm.heads["reward"](wm.dynamics.get_feat(s)).mode()
+        behavior._train(post, reward)
+
+    for _ in range(run["warmup"]):
+        update()
+    times = []
+    for _ in range(run["updates"]):
+        start = time.perf_counter()
+        update()
+        times.append(time.perf_counter() - start)
+    print(json.dumps({"coworld": reference, "dreamerv2": times}))
+    """
+)
+
+
 def dreamerv3_settings(config: Config) -> dict[str, object]:
     """dreamerv3-torch's config at our network sizes and batch (the tiny and cpu presets' sizes, which
     benchmarks/learning_side_by_side.py matched in its names); raises if ``config`` has other sizes."""
@@ -276,6 +336,12 @@ def interleave(args: argparse.Namespace) -> None:
         peer = dreamerv3_settings(make_config(args.preset, overrides))
         run = {"threads": args.threads, "updates": args.updates, "warmup": args.warmup}
         peer["run"] = {**run, "action_size": args.action_size}
+    if args.authors:
+        sides.append(("authors' release", Path(args.authors).resolve(), False))
+        config = make_config(args.preset, {"device": args.device, **dict(item.split("=", 1) for item in args.set)})
+        authors = {"threads": args.threads, "updates": args.updates, "warmup": args.warmup}
+        authors.update(action_size=args.action_size, batch_size=config.train.batch_size)
+        authors["batch_length"] = config.train.seq_len
     common = ["--threads", str(args.threads), "--updates", str(args.updates), "--warmup", str(args.warmup)]
     common += ["--preset", args.preset, "--device", args.device, "--algo", args.algo]
     common += ["--action-size", str(args.action_size)] + [f"--set={item}" for item in args.set]
@@ -286,7 +352,10 @@ def interleave(args: argparse.Namespace) -> None:
                 load = float(f.read().split()[0])
             if label == "dreamerv3-torch":
                 env = {**os.environ, "OMP_NUM_THREADS": str(args.threads)}
-                command = [args.dreamerv3_python, "-c", DREAMERV3_DRIVER, str(tree), json.dumps(peer)]
+                command = [args.peer_python, "-c", DREAMERV3_DRIVER, str(tree), json.dumps(peer)]
+            elif label == "authors' release":
+                env = {**os.environ, "OMP_NUM_THREADS": str(args.threads)}
+                command = [args.peer_python, "-c", AUTHORS_DRIVER, str(tree), json.dumps(authors)]
             else:
                 env = {**os.environ, "PYTHONPATH": str(tree)}
                 command = [sys.executable, __file__, "--worker", *common] + (["--allocator"] if tuned else [])
@@ -341,7 +410,13 @@ def main() -> None:
         help="with --interleave, also time NM512/dreamerv3-torch's update at matched sizes from its checkout at PATH",
     )
     parser.add_argument(
-        "--dreamerv3-python", default=sys.executable, help="interpreter for --dreamerv3 (needs torch, ruamel.yaml)"
+        "--authors",
+        metavar="PATH",
+        help="with --interleave, also time the CoWorld authors' release's DreamerV2 update from its checkout at PATH, "
+        "at its own DMC config and our batch (give this tree its sizes with --set)",
+    )
+    parser.add_argument(
+        "--peer-python", default=sys.executable, help="interpreter for the peers (needs torch, ruamel.yaml)"
     )
     parser.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--allocator", action="store_true", help=argparse.SUPPRESS)
