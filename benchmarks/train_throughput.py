@@ -23,7 +23,8 @@ Batches are random uint8 frames (throughput does not depend on content). Timings
 ``--interleave PATH`` times whole updates (DreamerV2, CoWorld's target and source) of this tree and of the
 checkout at ``PATH`` in alternating fresh processes, ``--blocks`` rounds, each process timing ``--updates`` calls
 after ``--warmup``; it prints the min and median seconds per update of each side and block with the 1-minute load
-average read before the block. This tree runs twice per block: with the CLI's malloc settings
+average read before the block, and the seconds the warm-up updates took (with ``--set compile=true``, the
+compilation; set ``TORCHINDUCTOR_CACHE_DIR`` to an empty folder to time it without inductor's on-disk cache). This tree runs twice per block: with the CLI's malloc settings
 (:func:`coworld.allocator.keep_freed_memory`, as every ``coworld`` command runs) and without them. With
 ``--dreamerv3 PATH`` each block also times NM512/dreamerv3-torch's update from its checkout at ``PATH`` (its
 ``Dreamer._train``: world model, then behaviour in imagination), at the tiny preset's sizes in its config names
@@ -184,16 +185,19 @@ def worker(args: argparse.Namespace) -> None:
         updates["coworld target"] = lambda: pair.train_target(batch)
         updates["coworld source"] = lambda: pair.train_source(batch)
     out: dict[str, object] = {"coworld": str(Path(coworld.__file__).parent.parent)}
+    warmup_s = {}
     for name, update in updates.items():
+        start = time.perf_counter()
         for _ in range(args.warmup):
             update()
+        warmup_s[name] = time.perf_counter() - start  # with compile=true, compilation happens here
         times = []
         for _ in range(args.updates):
             start = time.perf_counter()
             update()
             times.append(time.perf_counter() - start)
         out[name] = times
-    print(json.dumps(out))
+    print(json.dumps({**out, "warmup_s": warmup_s}))
 
 
 DREAMERV3_DRIVER = textwrap.dedent(
@@ -362,14 +366,16 @@ def interleave(args: argparse.Namespace) -> None:
             stdout = subprocess.run(command, env=env, cwd=tree, capture_output=True, check=True, text=True).stdout
             result = json.loads(stdout.strip().splitlines()[-1])  # the peer prints its model's shapes first
             assert Path(result.pop("coworld")) == tree, "the worker imported another checkout"
+            warmup_s = result.pop("warmup_s", {})
             for name, times in result.items():
                 rows.append((block, label, name, load, min(times), statistics.median(times)))
                 print(
-                    f"block {block} {label:<16}{name:<16} load {load:5.2f}  min {min(times):.3f} s  median "
-                    f"{statistics.median(times):.3f} s",
+                    f"block {block} {label:<18}{name:<16} load {load:5.2f}  min {min(times):.3f} s  median "
+                    f"{statistics.median(times):.3f} s"
+                    + (f"  (warm-up {warmup_s[name]:.1f} s)" if name in warmup_s else ""),
                     flush=True,
                 )
-    print(f"\n{'update':<16}{'side':<16}{'min s (best block)':>20}{'median of block medians':>25}{'x base':>8}")
+    print(f"\n{'update':<16}{'side':<18}{'min s (best block)':>20}{'median of block medians':>25}{'x base':>8}")
     for name in dict.fromkeys(row[2] for row in rows):
         base = statistics.median(r[5] for r in rows if r[2] == name and r[1] == "base")
         for label, _, _ in sides:
@@ -377,7 +383,7 @@ def interleave(args: argparse.Namespace) -> None:
             if not mine:  # the peer times the DreamerV2 update only
                 continue
             median = statistics.median(r[5] for r in mine)
-            print(f"{name:<16}{label:<16}{min(r[4] for r in mine):>20.3f}{median:>25.3f}{base / median:>8.2f}")
+            print(f"{name:<16}{label:<18}{min(r[4] for r in mine):>20.3f}{median:>25.3f}{base / median:>8.2f}")
     if args.json:
         keys = ("block", "side", "update", "load", "min_s", "median_s")
         Path(args.json).write_text(json.dumps([dict(zip(keys, row, strict=True)) for row in rows], indent=2))
