@@ -77,3 +77,7 @@ class _LazyGroup(click.Group):
 @click.version_option(__version__, prog_name="coworld")
 def main() -> None:
     """Offline visual RL across domains: collect datasets, train CoWorld and baselines, evaluate."""
+
+
+if __name__ == "__main__":  # `python -m coworld.cli ...`, as the benchmarks run a checkout without installing it
+    main()

@@ -46,3 +46,14 @@ def test_without_threads_the_cli_uses_one_thread_unless_omp_num_threads_says_oth
     torch.set_num_threads(2)
     CliRunner().invoke(main, ["eval", "--ckpt", "no/such/run"])
     assert torch.get_num_threads() == 2  # the user's setting stands
+
+
+def test_python_dash_m_runs_the_cli() -> None:
+    """`python -m coworld.cli` is the CLI (benchmarks/learning_side_by_side.py runs a checkout that way)."""
+    import subprocess
+    import sys
+
+    result = subprocess.run(
+        [sys.executable, "-m", "coworld.cli", "tasks"], capture_output=True, text=True, check=True, timeout=120
+    )
+    assert "walker_walk" in result.stdout
