@@ -428,8 +428,8 @@ class Config:
     precision: Annotated[str, OneOf(("auto", "bf16", "fp32"))] = "auto"
     """'auto' (bf16 autocast on CUDA, fp32 on CPU), 'bf16' or 'fp32'."""
     compile: bool = False
-    """torch.compile the world model's loss and the imagination rollout whole, and the networks acting calls (minutes
-    of compilation at start; on the CPU the update then takes about 0.85x the eager time: benchmarks/RESULTS.md)."""
+    """torch.compile the world model's loss and the imagination rollout whole, and the networks acting calls (about 5
+    minutes of compilation at start on the CPU, then 0.85x the eager update time: benchmarks/RESULTS.md)."""
     drqbc: DrqBcConfig = field(default_factory=DrqBcConfig)
     penalty: PenaltyConfig = field(default_factory=PenaltyConfig)
 

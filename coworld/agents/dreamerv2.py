@@ -61,8 +61,8 @@ class DreamerV2:
 
     ``device`` None uses ``config.device``; ``config.precision`` picks autocast; ``config.compile`` compiles the
     world model's loss and the imagination rollout whole, and the networks acting calls, with ``torch.compile``
-    (the first updates then wait for compilation: on one CPU thread, about 4 minutes at the tiny sizes with batch
-    16 x 32, about 30 s once inductor's on-disk cache holds the graphs).
+    (the first updates then wait for compilation: at the tiny sizes with batch 16 x 32, 313 s on this project's
+    2-core machine, 27 s once inductor's on-disk cache holds the graphs; benchmarks/RESULTS.md, issue 19).
     """
 
     def __init__(
