@@ -24,8 +24,9 @@ Batches are random uint8 frames (throughput does not depend on content). Timings
 checkout at ``PATH`` in alternating fresh processes, ``--blocks`` rounds, each process timing ``--updates`` calls
 after ``--warmup``; it prints the min and median seconds per update of each side and block with the 1-minute load
 average read before the block, and the seconds the warm-up updates took (with ``--set compile=true``, the
-compilation; set ``TORCHINDUCTOR_CACHE_DIR`` to an empty folder to time it without inductor's on-disk cache). This tree runs twice per block: with the CLI's malloc settings
-(:func:`coworld.allocator.keep_freed_memory`, as every ``coworld`` command runs) and without them. With
+compilation; set ``TORCHINDUCTOR_CACHE_DIR`` to an empty folder to time it without inductor's on-disk cache).
+This tree runs twice per block: with the CLI's malloc settings (:func:`coworld.allocator.keep_freed_memory`, as
+every ``coworld`` command runs) and without them. With
 ``--dreamerv3 PATH`` each block also times NM512/dreamerv3-torch's update from its checkout at ``PATH`` (its
 ``Dreamer._train``: world model, then behaviour in imagination), at the tiny preset's sizes in its config names
 (those benchmarks/learning_side_by_side.py matched) and the same batch; ``--authors PATH`` the CoWorld authors'
