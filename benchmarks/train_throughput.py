@@ -201,8 +201,28 @@ def worker(args: argparse.Namespace) -> None:
     print(json.dumps({**out, "warmup_s": warmup_s}))
 
 
-DREAMERV3_DRIVER = textwrap.dedent(
+_PEER_TIMING = textwrap.dedent(
     """
+    def update():  # as the peer's Dreamer._train: world model, then behaviour from its posterior
+        post, _, _ = wm._train(data)
+        reward = lambda f, s, a: wm.heads["reward"](wm.dynamics.get_feat(s)).mode()
+        behavior._train(post, reward)
+
+    for _ in range(run["warmup"]):
+        update()
+    times = []
+    for _ in range(run["updates"]):
+        start = time.perf_counter()
+        update()
+        times.append(time.perf_counter() - start)
+    print(json.dumps({"coworld": reference, "dreamerv2": times}))
+    """
+)
+"""The end of each peer driver: ``wm``, ``behavior``, ``data``, ``run`` and ``reference`` set by its start."""
+
+DREAMERV3_DRIVER = (
+    textwrap.dedent(
+        """
     # Written by coworld's benchmarks/train_throughput.py: times NM512/dreamerv3-torch's update (world model, then
     # behaviour in imagination, as its Dreamer._train) on a random batch; prints JSON like our --worker.
     import argparse, json, pathlib, sys, time, types
@@ -242,26 +262,15 @@ DREAMERV3_DRIVER = textwrap.dedent(
         "is_first": first,
         "is_terminal": np.zeros((batch, length), np.float32),
     }
-
-    def update():
-        post, _, _ = wm._train(data)
-        reward = lambda f, s, a: wm.heads["reward"](wm.dynamics.get_feat(s)).mode()
-        behavior._train(post, reward)
-
-    for _ in range(run["warmup"]):
-        update()
-    times = []
-    for _ in range(run["updates"]):
-        start = time.perf_counter()
-        update()
-        times.append(time.perf_counter() - start)
-    print(json.dumps({"coworld": reference, "dreamerv2": times}))
     """
+    )
+    + _PEER_TIMING
 )
 
 
-AUTHORS_DRIVER = textwrap.dedent(
-    """
+AUTHORS_DRIVER = (
+    textwrap.dedent(
+        """
     # Written by coworld's benchmarks/train_throughput.py: times the CoWorld authors' release's DreamerV2 update (its
     # WorldModel._train in the source-domain pre-training mode, a plain DreamerV2 step, then ImagBehavior._train, as
     # its Dreamer._train) on a random batch at its DMC config; prints JSON like our --worker.
@@ -298,21 +307,9 @@ AUTHORS_DRIVER = textwrap.dedent(
         "reward": rng.normal(size=(batch, length)).astype(np.float32),
         "discount": np.ones((batch, length), np.float32),
     }
-
-    def update():
-        post, _, _ = wm._train(data)
-        reward = lambda f, s, a: wm.heads["reward"](wm.dynamics.get_feat(s)).mode()
-        behavior._train(post, reward)
-
-    for _ in range(run["warmup"]):
-        update()
-    times = []
-    for _ in range(run["updates"]):
-        start = time.perf_counter()
-        update()
-        times.append(time.perf_counter() - start)
-    print(json.dumps({"coworld": reference, "dreamerv2": times}))
     """
+    )
+    + _PEER_TIMING
 )
 
 
