@@ -7,6 +7,8 @@ Examples::
     python benchmarks/train_throughput.py                              # tiny preset on CPU (2 threads)
     python benchmarks/train_throughput.py --preset paper --device cpu --updates 1 --warmup 0
     python benchmarks/train_throughput.py --preset paper --device cuda --compare   # fp32 / bf16, eager / compiled
+    python benchmarks/train_throughput.py --profile --threads 1 --updates 3 --set train.batch_size=16 \
+        --set train.seq_len=32    # where an update's time goes, op by op
     python benchmarks/train_throughput.py --threads 1 --set train.batch_size=16 --set train.seq_len=32 \
         --interleave /tmp/base --blocks 4 --updates 6    # this tree against another checkout, side by side
     python benchmarks/train_throughput.py --threads 1 --interleave /tmp/base --dreamerv3 /path/to/dreamerv3-torch \
@@ -387,6 +389,27 @@ def interleave(args: argparse.Namespace) -> None:
         Path(args.json).write_text(json.dumps([dict(zip(keys, row, strict=True)) for row in rows], indent=2))
 
 
+def profile(args: argparse.Namespace) -> None:
+    """torch.profiler's table of ``--updates`` whole DreamerV2 updates (after ``--warmup``), ops by self CPU time,
+    with the CLI's malloc settings."""
+    from torch.profiler import ProfilerActivity
+    from torch.profiler import profile as torch_profile
+
+    from coworld import allocator
+
+    allocator.keep_freed_memory()
+    config = make_config(args.preset, {"device": args.device, **dict(item.split("=", 1) for item in args.set)})
+    agent = DreamerV2(config=config, action_size=args.action_size)
+    batch = random_batch(config.train.batch_size, config.train.seq_len, args.action_size)
+    for _ in range(args.warmup):
+        agent.train(batch)
+    with torch_profile(activities=[ProfilerActivity.CPU]) as prof:
+        for _ in range(args.updates):
+            agent.train(batch)
+    print(f"{args.updates} updates; divide the times by {args.updates} for one")
+    print(prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=25))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--preset", default="tiny", choices=["tiny", "paper"])
@@ -422,6 +445,7 @@ def main() -> None:
     parser.add_argument(
         "--peer-python", default=sys.executable, help="interpreter for the peers (needs torch, ruamel.yaml)"
     )
+    parser.add_argument("--profile", action="store_true", help="torch.profiler table of whole DreamerV2 updates")
     parser.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--allocator", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
@@ -431,6 +455,8 @@ def main() -> None:
         return interleave(args)
     torch.set_num_threads(args.threads)
     torch.manual_seed(0)
+    if args.profile:
+        return profile(args)
     if args.algo in ("others", "all"):
         print(f"preset={args.preset} device={args.device} threads={args.threads}")
         print(f"{'update':<24}{'s':>10}{'updates/s':>11}")
