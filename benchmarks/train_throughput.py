@@ -165,6 +165,11 @@ def measure_others(preset: str, device: str, warmup: int, repeats: int, action_s
     return out
 
 
+def args_config(args: argparse.Namespace) -> Config:
+    """The config of ``--preset``, ``--device`` and the ``--set`` overrides."""
+    return make_config(args.preset, {"device": args.device, **dict(item.split("=", 1) for item in args.set)})
+
+
 def worker(args: argparse.Namespace) -> None:
     """One side of ``--interleave``: time whole updates of the ``coworld`` on ``sys.path``, print JSON."""
     import coworld
@@ -175,8 +180,7 @@ def worker(args: argparse.Namespace) -> None:
         allocator.keep_freed_memory()
     torch.set_num_threads(args.threads)
     torch.manual_seed(0)
-    overrides = {"device": args.device, **dict(item.split("=", 1) for item in args.set)}
-    config = make_config(args.preset, overrides)
+    config = args_config(args)
     batch = random_batch(config.train.batch_size, config.train.seq_len, args.action_size)
     agent = DreamerV2(config=config, action_size=args.action_size)
     updates: dict[str, Callable[[], object]] = {"dreamerv2": lambda: agent.train(batch)}
@@ -334,18 +338,18 @@ def interleave(args: argparse.Namespace) -> None:
     """Alternate worker processes of this tree and of ``args.interleave``; print min / median per block."""
     here = Path(__file__).resolve().parent.parent
     sides = [("base", Path(args.interleave).resolve(), False), ("new", here, False), ("new+malloc", here, True)]
+    # The peers: side label -> the driver's command (their checkout's path and a JSON of what to time).
+    config = args_config(args)
+    run = {"threads": args.threads, "updates": args.updates, "warmup": args.warmup, "action_size": args.action_size}
+    peers: dict[str, list[str]] = {}
     if args.dreamerv3:
         sides.append(("dreamerv3-torch", Path(args.dreamerv3).resolve(), False))
-        overrides = {"device": args.device, **dict(item.split("=", 1) for item in args.set)}
-        peer = dreamerv3_settings(make_config(args.preset, overrides))
-        run = {"threads": args.threads, "updates": args.updates, "warmup": args.warmup}
-        peer["run"] = {**run, "action_size": args.action_size}
+        settings = {**dreamerv3_settings(config), "run": run}
+        peers["dreamerv3-torch"] = [args.peer_python, "-c", DREAMERV3_DRIVER, str(sides[-1][1]), json.dumps(settings)]
     if args.authors:
         sides.append(("authors' release", Path(args.authors).resolve(), False))
-        config = make_config(args.preset, {"device": args.device, **dict(item.split("=", 1) for item in args.set)})
-        authors = {"threads": args.threads, "updates": args.updates, "warmup": args.warmup}
-        authors.update(action_size=args.action_size, batch_size=config.train.batch_size)
-        authors["batch_length"] = config.train.seq_len
+        batch = {"batch_size": config.train.batch_size, "batch_length": config.train.seq_len}
+        peers["authors' release"] = [args.peer_python, "-c", AUTHORS_DRIVER, str(sides[-1][1]), json.dumps(run | batch)]
     common = ["--threads", str(args.threads), "--updates", str(args.updates), "--warmup", str(args.warmup)]
     common += ["--preset", args.preset, "--device", args.device, "--algo", args.algo]
     common += ["--action-size", str(args.action_size)] + [f"--set={item}" for item in args.set]
@@ -354,12 +358,9 @@ def interleave(args: argparse.Namespace) -> None:
         for label, tree, tuned in sides:
             with open("/proc/loadavg") as f:
                 load = float(f.read().split()[0])
-            if label == "dreamerv3-torch":
+            if label in peers:
                 env = {**os.environ, "OMP_NUM_THREADS": str(args.threads)}
-                command = [args.peer_python, "-c", DREAMERV3_DRIVER, str(tree), json.dumps(peer)]
-            elif label == "authors' release":
-                env = {**os.environ, "OMP_NUM_THREADS": str(args.threads)}
-                command = [args.peer_python, "-c", AUTHORS_DRIVER, str(tree), json.dumps(authors)]
+                command = peers[label]
             else:
                 env = {**os.environ, "PYTHONPATH": str(tree)}
                 command = [sys.executable, __file__, "--worker", *common] + (["--allocator"] if tuned else [])
@@ -398,7 +399,7 @@ def profile(args: argparse.Namespace) -> None:
     from coworld import allocator
 
     allocator.keep_freed_memory()
-    config = make_config(args.preset, {"device": args.device, **dict(item.split("=", 1) for item in args.set)})
+    config = args_config(args)
     agent = DreamerV2(config=config, action_size=args.action_size)
     batch = random_batch(config.train.batch_size, config.train.seq_len, args.action_size)
     for _ in range(args.warmup):

@@ -221,9 +221,9 @@ class ConvEncoder(nn.Module):
         ``(..., 4 C, 32, 32)`` -> ``(..., embed_size)``.
 
         The first layer (kernel 4, stride 2) is then a kernel-2, stride-1 convolution of the phases with the same
-        weights rearranged (about as fast on a CPU as the 3-channel strided one: 8.2 against 8.6 ms forward at
-        512 images); the world model's loss preprocesses its images into phases once, for this and for the
-        decoder's target, so it needs no second, plain copy of them.
+        weights rearranged (about as fast on a CPU as the 3-channel strided one); the world model's loss
+        preprocesses its images into phases once, for this and for the decoder's target, so it needs no second,
+        plain copy of them.
         """
         batch = phases.shape[:-3]
         first = self.net[0]
