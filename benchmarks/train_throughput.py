@@ -326,7 +326,8 @@ def dreamerv3_settings(config: Config) -> dict[str, object]:
     ours = (wm.cnn_depth, wm.deter, wm.hidden, wm.stoch, wm.classes, wm.mlp_units, ac.units, ac.horizon)
     matched = (8, 64, 64, 8, 8, 64, 64, 10)
     if ours != matched:
-        raise SystemExit(f"--dreamerv3 compares at the tiny preset's sizes {matched}, not {ours}")
+        print(f"--dreamerv3 compares at the tiny preset's sizes {matched}, not {ours}", file=sys.stderr)
+        raise SystemExit(2)
     keys = ("dyn_deter", "dyn_hidden", "dyn_stoch", "dyn_discrete", "units", "model_lr", "imag_horizon", "compile")
     settings: dict[str, object] = {key: REFERENCE_SETTINGS[key] for key in keys}
     settings.update(REFERENCE_NESTED)
