@@ -236,6 +236,10 @@ class TrainConfig:
     """Environment steps between checkpoints."""
     envs: Annotated[int, Range(1, 256)] = 1
     """Parallel training environments (worker processes when > 1)."""
+    background_updates: bool = False
+    """Online runs: each update runs on a background thread while the agent takes the next ``train_every``
+    environment steps with a copy of the weights from before it, so acting and learning use two cores at the same
+    train ratio; the agent then acts one update behind (:mod:`coworld.training.online`)."""
     actor_warmup: Annotated[int, NON_NEGATIVE] = 0
     """Updates that train the world model alone before the actor and critic start learning (0: from the first).
     Until then the agent acts with its untrained actor's wide spread, so the data stay varied while the model

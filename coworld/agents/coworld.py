@@ -169,6 +169,9 @@ class _SourceLearner:
     def policy(self, *args: Any, **kwargs: Any) -> Any:
         return self.coworld.source.policy(*args, **kwargs)
 
+    def policy_copy(self) -> Any:
+        return self.coworld.source.policy_copy()
+
     def value(self, state: Any) -> np.ndarray:
         return self.coworld.source.value(state)
 
@@ -218,6 +221,8 @@ def train_coworld(job: Any, *, device: torch.device, resumed: bool, progress: bo
             agent.target.load_state_dict(state["agent"])
             agent.source.load_state_dict(state["source"])
             source_trainer.updates = int(state["source_updates"])
+            if "source_act_rng" in state:
+                source_trainer.act_rng.set_state(state["source_act_rng"])
             progress_state.update(state["progress"])
             set_rng_state(state["rng"])
 
@@ -232,6 +237,7 @@ def train_coworld(job: Any, *, device: torch.device, resumed: bool, progress: bo
                     "agent": agent.target.state_dict(),
                     "source": agent.source.state_dict(),
                     "source_updates": source_trainer.updates,
+                    "source_act_rng": source_trainer.act_rng.get_state(),
                     "progress": dict(progress_state),
                     "rng": rng_state(),
                 },

@@ -11,6 +11,7 @@ Batches are dicts of NumPy arrays (or torch tensors) in the replay convention, s
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 from collections.abc import Callable, Mapping
 from typing import Any, Literal
 
@@ -26,7 +27,15 @@ from coworld.models.rssm import State
 from coworld.models.world_model import WorldModel
 from coworld.training.run import resolve_device
 
-__all__ = ["DreamerV2", "ExtraWorldModelLoss", "ImaginedReward", "PolicyState", "resolve_device", "resolve_precision"]
+__all__ = [
+    "DreamerV2",
+    "ExtraWorldModelLoss",
+    "ImaginedReward",
+    "PolicyCopy",
+    "PolicyState",
+    "resolve_device",
+    "resolve_precision",
+]
 
 PolicyState = tuple[State, Tensor]
 """What :meth:`DreamerV2.policy` carries between steps: the posterior (batch ``(N,)``) and the last action
@@ -108,6 +117,7 @@ class DreamerV2:
         mode: Literal["train", "eval", "random"] = "train",
         *,
         is_first: np.ndarray | None = None,
+        generator: torch.Generator | None = None,
     ) -> tuple[np.ndarray, PolicyState | None]:
         """Actions for a batch of observations.
 
@@ -117,7 +127,8 @@ class DreamerV2:
         mode, 'random' draws uniform actions in ``[-1, 1]`` (the prefill) while still filtering the latent, so a
         run that switches from 'random' to 'train' mid-episode continues the episode's state. The returned
         state holds the action actually returned, noise included: the next step conditions on what was executed.
-        Returns float32 actions ``(N, A)`` and the new state.
+        ``generator`` (on the agent's device): where every random number of the call comes from, torch's default
+        generator when None. Returns float32 actions ``(N, A)`` and the new state.
         """
         n = obs.shape[0]
         if mode not in ("train", "eval", "random"):
@@ -131,19 +142,29 @@ class DreamerV2:
         if is_first is not None:
             first = first | torch.as_tensor(np.asarray(is_first, dtype=bool), device=self.device)
         image = torch.as_tensor(obs, device=self.device)
+        rssm = self.world_model.rssm
+        race = None  # the latent draws' noise, drawn inside obs_step from the default generator
+        if generator is not None:
+            race = torch.empty(2, n, rssm.stoch, rssm.classes, device=self.device).exponential_(generator=generator)
         with self._autocast():
             embed = self.world_model.encode(image)
-            latent, _ = self.world_model.rssm.obs_step(latent, action, embed, first)
+            latent, _ = rssm.obs_step(latent, action, embed, first, noise=race)
             if mode == "random":
-                action = torch.rand(n, self.action_size, device=self.device) * 2.0 - 1.0
+                action = torch.rand(n, self.action_size, generator=generator, device=self.device) * 2.0 - 1.0
             else:
                 dist = self.actor_critic.actor(self.world_model.features(latent))
-                action = dist.mode if mode == "eval" else dist.sample()
+                action = dist.mode if mode == "eval" else dist.sample(generator)
         action = action.float().clamp(-1.0, 1.0)  # an untruncated actor's samples are clipped when executed
         noise = self.config.train.expl_noise
         if mode == "train" and noise > 0.0:
-            action = (action + noise * torch.randn_like(action)).clamp(-1.0, 1.0)
+            normal = torch.randn(action.shape, generator=generator, device=self.device)
+            action = (action + noise * normal).clamp(-1.0, 1.0)
         return action.cpu().numpy(), (latent, action)
+
+    def policy_copy(self) -> PolicyCopy:
+        """A copy of the networks acting needs, which acts with this agent's weights as they were at its last
+        :meth:`PolicyCopy.sync` while this agent trains (online runs' background updates)."""
+        return PolicyCopy(self)
 
     @torch.no_grad()
     def value(self, state: PolicyState) -> np.ndarray:
@@ -299,6 +320,42 @@ class DreamerV2:
         ):
             if module is not None:
                 module.compile()
+
+
+class PolicyCopy:
+    """The encoder, RSSM and actor of ``agent``, copied: :meth:`policy` acts exactly as ``agent.policy`` did at the
+    last :meth:`sync`, so it can act while ``agent`` trains on another thread. The copy is never compiled."""
+
+    def __init__(self, agent: DreamerV2) -> None:
+        with torch.random.fork_rng(devices=[]):  # its initial weights are overwritten: draw them off the record
+            self.copy = DreamerV2(
+                config=dataclasses.replace(agent.config, compile=False),
+                action_size=agent.action_size,
+                image_shape=agent.image_shape,
+                device=agent.device,
+            )
+        sources = (agent.world_model.encoder, agent.world_model.rssm, agent.actor_critic.actor)
+        copies = (self.copy.world_model.encoder, self.copy.world_model.rssm, self.copy.actor_critic.actor)
+        self._pairs = [
+            (source, copy)
+            for source_module, copy_module in zip(sources, copies, strict=True)
+            for source, copy in zip(
+                [*source_module.parameters(), *source_module.buffers()],
+                [*copy_module.parameters(), *copy_module.buffers()],
+                strict=True,
+            )
+        ]
+        self.sync()
+
+    @torch.no_grad()
+    def sync(self) -> None:
+        """Take the agent's current weights (call it while the agent is not training)."""
+        for source, copy in self._pairs:
+            copy.copy_(source)
+
+    def policy(self, *args: Any, **kwargs: Any) -> tuple[np.ndarray, PolicyState | None]:
+        """:meth:`DreamerV2.policy` with the weights of the last :meth:`sync`."""
+        return self.copy.policy(*args, **kwargs)
 
 
 def _optimizer(params: Any, *, lr: float, eps: float, decay: float) -> torch.optim.AdamW:

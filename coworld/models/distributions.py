@@ -254,19 +254,20 @@ class TruncatedNormal:
         """``loc + scale * (phi(alpha) - phi(beta)) / Z``, shape ``(..., A)``."""
         return self.loc + self.scale * (_std_normal_pdf(self._alpha) - _std_normal_pdf(self._beta)) / self._mass
 
-    def rsample(self) -> Tensor:
-        """Reparameterised sample in ``[low + clip, high - clip]``, shape ``(..., A)``."""
-        uniform = torch.rand_like(self.loc)
+    def rsample(self, generator: torch.Generator | None = None) -> Tensor:
+        """Reparameterised sample in ``[low + clip, high - clip]``, shape ``(..., A)`` (``generator``: where the
+        random numbers come from, torch's default when None)."""
+        uniform = torch.rand(self.loc.shape, generator=generator, dtype=self.loc.dtype, device=self.loc.device)
         tiny = torch.finfo(self.loc.dtype).eps
         quantile = (self._cdf_alpha + uniform * self._mass).clamp(tiny, 1.0 - tiny)
         sample = self.loc + self.scale * torch.special.ndtri(quantile)
         clipped = sample.clamp(self.low + self.clip, self.high - self.clip)
         return sample + (clipped - sample).detach()
 
-    def sample(self) -> Tensor:
+    def sample(self, generator: torch.Generator | None = None) -> Tensor:
         """Sample without gradient, shape ``(..., A)``."""
         with torch.no_grad():
-            return self.rsample()
+            return self.rsample(generator)
 
     def log_prob(self, value: Tensor) -> Tensor:
         """Log-density summed over actions, shape ``(...)`` (``value`` must lie inside the bounds)."""
@@ -309,14 +310,14 @@ class TanhNormal:
         """``tanh(loc)`` (approximation of the mean), shape ``(..., A)``."""
         return torch.tanh(self.loc)
 
-    def rsample(self) -> Tensor:
-        """Reparameterised sample, shape ``(..., A)``."""
-        return torch.tanh(self.loc + self.scale * torch.randn_like(self.loc))
+    def rsample(self, generator: torch.Generator | None = None) -> Tensor:
+        """Reparameterised sample, shape ``(..., A)`` (random numbers from ``generator``, torch's default when None)."""
+        return torch.tanh(self.loc + self.scale * _standard_normal(self.loc, generator))
 
-    def sample(self) -> Tensor:
+    def sample(self, generator: torch.Generator | None = None) -> Tensor:
         """Sample without gradient, shape ``(..., A)``."""
         with torch.no_grad():
-            return self.rsample()
+            return self.rsample(generator)
 
     def log_prob(self, value: Tensor) -> Tensor:
         """Log-density of the squashed sample summed over actions, shape ``(...)``."""
@@ -358,14 +359,15 @@ class Normal:
         """``loc``, shape ``(..., A)``."""
         return self.loc
 
-    def rsample(self) -> Tensor:
-        """Reparameterised sample ``loc + scale * eps``, shape ``(..., A)``."""
-        return self.loc + self.scale * torch.randn_like(self.loc)
+    def rsample(self, generator: torch.Generator | None = None) -> Tensor:
+        """Reparameterised sample ``loc + scale * eps``, shape ``(..., A)`` (``eps`` from ``generator``, torch's
+        default when None)."""
+        return self.loc + self.scale * _standard_normal(self.loc, generator)
 
-    def sample(self) -> Tensor:
+    def sample(self, generator: torch.Generator | None = None) -> Tensor:
         """Sample without gradient, shape ``(..., A)``."""
         with torch.no_grad():
-            return self.rsample()
+            return self.rsample(generator)
 
     def log_prob(self, value: Tensor) -> Tensor:
         """Log-density summed over actions, shape ``(...)``."""
@@ -375,6 +377,11 @@ class Normal:
     def entropy(self) -> Tensor:
         """``log(sqrt(2 pi e) scale)`` summed over actions, shape ``(...)``."""
         return (_LOG_SQRT_2PI + 0.5 + self.scale.log()).sum(-1)
+
+
+def _standard_normal(like: Tensor, generator: torch.Generator | None) -> Tensor:
+    """Standard normal numbers shaped like ``like`` (``torch.randn_like``'s draw, from ``generator`` if given)."""
+    return torch.randn(like.shape, generator=generator, dtype=like.dtype, device=like.device)
 
 
 def _std_normal_pdf(x: Tensor) -> Tensor:

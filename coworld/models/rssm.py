@@ -95,17 +95,21 @@ class RSSM(nn.Module):
         embed: Tensor,
         is_first: Tensor | None = None,
         sample: bool = True,
+        noise: Tensor | None = None,
     ) -> tuple[State, State]:
         """Posterior step with the embedding ``(N, E)`` of the new observation; returns ``(post, prior)``.
 
         Where ``is_first (N,)`` is true the previous state and action are zeroed first (a new episode starts).
+        ``noise (2, N, S, K)``: the exponential noise of the prior's and the posterior's draws (see
+        :meth:`OneHotCategorical.rsample`), drawn here when None (one call of ``exponential_`` draws the same).
         """
         if is_first is not None:
             keep = (~is_first.bool()).to(prev_action.dtype)
             prev_state = {k: v * keep.reshape(-1, *([1] * (v.ndim - 1))) for k, v in prev_state.items()}
             prev_action = prev_action * keep[:, None]
-        prior = self.img_step(prev_state, prev_action, sample)
-        return self._posterior(prior, self._embed_share(embed), sample), prior
+        prior_noise, post_noise = (None, None) if noise is None else noise
+        prior = self.img_step(prev_state, prev_action, sample, prior_noise)
+        return self._posterior(prior, self._embed_share(embed), sample, post_noise), prior
 
     def observe(
         self, embed: Tensor, action: Tensor, is_first: Tensor, state: State | None = None

@@ -17,16 +17,30 @@ Train ratio: after ``train.prefill`` random steps the agent makes ``train.pretra
 (DreamerV2's ``pretrain``), then one update every ``train.train_every`` environment steps
 (:meth:`OnlineTrainer.updates_due`). A resumed run keeps that ratio from its restored state on rather than
 catching up the updates lost with the killed process.
+
+By default each update is made as soon as it falls due, before the next step, and acting draws its random numbers
+from torch's default generator, as the updates do. ``train.background_updates=true`` acts beside learning
+instead: an update that falls due after step ``s`` samples its batch from the replay as it is at ``s`` (as the
+default does) and runs on a background thread while the agent takes the next ``train_every`` steps with a copy of
+the weights from before that update (:meth:`DreamerV2.policy_copy`); the next update waits for it, and the copy
+then takes its weights. Acting (policy and environment, rendering included) and learning use two cores, at the
+same train ratio, and the agent acts one update behind the default schedule. Acting then draws from a generator
+of its own (``act_rng``, saved in the checkpoint), so the two threads never share one, and the thread changes
+nothing: run in turn (:class:`Updates` without ``in_thread``), the same schedule records the same data and trains
+the same weights (a test holds them equal). Evaluation, checkpoints and the end of a call wait for the running
+update.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import threading
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
 
 from coworld import envs, interrupt
 from coworld.config import Config, to_dict
@@ -39,6 +53,10 @@ from coworld.training.replay import Replay
 from coworld.viz.training import log_open_loop
 
 CHECKPOINT_KIND = "dreamerv2-online"
+ACT_SEED_OFFSET = 30_000
+"""Acting's generator is seeded with ``seed + ACT_SEED_OFFSET`` (evaluation uses ``seed + 10_000``)."""
+STOP_WAIT_SECONDS = 5.0
+"""How long a call stopped by an error or a signal waits for the update running in the background to end."""
 
 
 @dataclass
@@ -48,6 +66,64 @@ class OnlineResult:
     episodes: int
     last_eval_return: float | None
     stop_reason: str
+
+
+class Updates:
+    """The online trainer's updates, one at a time: :meth:`start` hands over a batch, :meth:`wait` returns the
+    update's metrics. ``in_thread``: the update runs on a thread of its own from :meth:`start` on; else :meth:`wait`
+    runs it in the caller's thread. Either way an update starts and ends between the same two calls, so both run
+    the same schedule."""
+
+    def __init__(self, train: Callable[[Mapping[str, np.ndarray]], dict[str, float]], in_thread: bool) -> None:
+        self._train = train
+        self.in_thread = in_thread
+        self._batch: Mapping[str, np.ndarray] | None = None
+        self._thread: threading.Thread | None = None
+        self._result: dict[str, float] | None = None
+        self._error: BaseException | None = None
+
+    @property
+    def pending(self) -> bool:
+        """An update was started and not yet waited for."""
+        return self._batch is not None or self._thread is not None
+
+    def start(self, batch: Mapping[str, np.ndarray]) -> None:
+        if self.pending:
+            raise RuntimeError("an update is still pending: wait() for it before starting the next")
+        if self.in_thread:
+            self._thread = threading.Thread(target=self._run, args=(batch,), name="coworld-update", daemon=True)
+            self._thread.start()
+        else:
+            self._batch = batch
+
+    def wait(self, timeout: float | None = None) -> dict[str, float] | None:
+        """The pending update's metrics, once it has ended (None if none was pending); raises what it raised.
+        ``timeout`` (``in_thread`` only): give up after that many seconds and return None, leaving it pending."""
+        if self._thread is not None:
+            self._thread.join(timeout)
+            if self._thread.is_alive():
+                return None
+            self._thread = None
+        elif self._batch is not None:
+            batch, self._batch = self._batch, None
+            self._run(batch)
+        result, error = self._result, self._error
+        self._result = self._error = None
+        if error is not None:
+            raise error
+        return result
+
+    def abandon(self, timeout: float) -> None:
+        """Drop the pending update (the job is stopping): a background one gets ``timeout`` seconds to end."""
+        if self._thread is not None:
+            self._thread.join(timeout)
+        self._thread = self._batch = self._result = self._error = None
+
+    def _run(self, batch: Mapping[str, np.ndarray]) -> None:
+        try:
+            self._result = self._train(batch)
+        except BaseException as error:  # handed to the thread that waits
+            self._error = error
 
 
 def dataset_episodes(path: str | Path) -> list[dict[str, np.ndarray]]:
@@ -102,6 +178,16 @@ class OnlineTrainer:
         self._obs: np.ndarray | None = None
         self._is_last = np.zeros(config.train.envs, dtype=bool)
         self._last_checkpoint_step = self.steps
+        self.background = config.train.background_updates
+        """Acting beside learning (see the module docstring)."""
+        self._updates = Updates(agent.train, in_thread=self.background)
+        self._actor: Any = None
+        """What acts: the agent itself, or its policy copy when updates run beside acting."""
+        self.act_rng = torch.Generator(device=getattr(agent, "device", "cpu")).manual_seed(
+            config.seed + ACT_SEED_OFFSET
+        )
+        """Where acting draws its random numbers beside learning (torch's default generator otherwise)."""
+        """Where acting draws its random numbers (never torch's default generator, which the updates use)."""
 
     # -- persistence -----------------------------------------------------------------------------------------------
     @property
@@ -121,9 +207,12 @@ class OnlineTrainer:
         self.last_eval = state["last_eval"]
         self.last_eval_step = int(state["last_eval_step"])
         set_rng_state(state["rng"])
+        if "act_rng" in state:  # checkpoints from before acting had its own generator start it afresh
+            self.act_rng.set_state(state["act_rng"])
         return state
 
     def save(self) -> None:
+        self._finish_update()
         state = {
             "kind": CHECKPOINT_KIND,
             "task": self.task,
@@ -134,6 +223,7 @@ class OnlineTrainer:
             "last_eval": self.last_eval,
             "last_eval_step": self.last_eval_step,
             "rng": rng_state(),
+            "act_rng": self.act_rng.get_state(),
         }
         if self.checkpoint_extra is not None:
             state.update(self.checkpoint_extra())
@@ -171,6 +261,10 @@ class OnlineTrainer:
             for i in range(n):
                 self._record(i, self._obs[i], np.zeros(self.spec.action_size, np.float32), 0.0, True, False, False)
         self._skip_missed_updates()
+        if self._actor is None:
+            self._actor = self.agent.policy_copy() if self.background else self.agent
+        elif self._actor is not self.agent:
+            self._actor.sync()  # the agent's weights may have been loaded since the last call
         bar = progress_bar(
             total=max_steps, initial=min(self.steps, max_steps), desc=self.task, unit="env steps", enabled=progress
         )
@@ -188,7 +282,13 @@ class OnlineTrainer:
                 # The agent adds its own exploration noise (train.expl_noise), so the action the latent conditions
                 # on is the one executed; during the prefill it still filters the latent, so the first trained
                 # action continues the running episode's state rather than restarting it mid-episode.
-                action, self._state = self.agent.policy(self._obs, self._state, mode=mode, is_first=self._is_first)
+                action, self._state = self._actor.policy(
+                    self._obs,
+                    self._state,
+                    mode=mode,
+                    is_first=self._is_first,
+                    generator=self.act_rng if self.background else None,
+                )
                 action = action.astype(np.float32)
                 obs, reward, terminated, truncated, info = self._venv.step(action)
                 # With cut_episodes, the run ends at exactly max_steps rows and the running episodes end there
@@ -233,8 +333,11 @@ class OnlineTrainer:
                 if should_pause is not None and should_pause(self):
                     reason = "paused"
                     break
+            metrics.update(self._finish_update())
         finally:
             bar.close()
+            if self._updates.pending:  # stopped by an error or a signal: let the running update end, briefly
+                self._updates.abandon(STOP_WAIT_SECONDS)
         if metrics:  # what the last log_every window had not written yet
             self.logger.log(metrics, self.steps, unit=self.step_unit)
         if reason != "paused":
@@ -319,17 +422,31 @@ class OnlineTrainer:
             self._skipped_updates += missed
 
     def _train_due(self) -> dict[str, float]:
+        """Make the updates due by now, each on a batch of the replay as it is now, after the one before ends;
+        returns the metrics of the last update that ended. Beside learning the last one is left running."""
         cfg = self.config.train
         metrics: dict[str, float] = {}
         if self.steps < cfg.prefill or not self.replay.episodes:
             return metrics
         while self.updates < self.updates_due(self.steps) - self._skipped_updates:
-            batch = self.replay.sample(cfg.batch_size, cfg.seq_len)
-            metrics = {f"{self.prefix}{k}": v for k, v in self.agent.train(batch).items()}
+            metrics = self._finish_update() or metrics
+            self._updates.start(self.replay.sample(cfg.batch_size, cfg.seq_len))
             self.updates += 1
+            if not self.background:
+                metrics = self._finish_update()
         return metrics
 
+    def _finish_update(self) -> dict[str, float]:
+        """Wait for the running update; the policy copy then takes its weights. Returns its metrics ({} if none)."""
+        result = self._updates.wait()
+        if result is None:
+            return {}
+        if self._actor is not None and self._actor is not self.agent:
+            self._actor.sync()
+        return {f"{self.prefix}{k}": v for k, v in result.items()}
+
     def _evaluate(self) -> None:
+        self._finish_update()
         cfg = self.config.train
         result, _ = evaluate(
             self.agent,

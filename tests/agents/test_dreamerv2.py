@@ -136,6 +136,45 @@ def test_policy_is_first_resets_single_rows(tiny: Config) -> None:
     assert not torch.allclose(reset_state[0]["deter"][1:], fresh_state[0]["deter"][1:])
 
 
+def _act(actor, obs: np.ndarray, seed: int, mode: str = "train") -> list[np.ndarray]:
+    """Three policy steps from a fresh latent, every random number from a generator seeded ``seed``."""
+    generator, state, actions = torch.Generator().manual_seed(seed), None, []
+    for frame in obs:
+        action, state = actor.policy(frame, state, mode, generator=generator)
+        actions.append(action)
+    return actions
+
+
+def test_policy_draws_from_the_generator_it_is_given_and_leaves_the_default_alone(tiny: Config) -> None:
+    agent = DreamerV2(config=tiny, action_size=ACTION_SIZE)
+    obs = numpy_batch(batch=2, length=3)["image"].swapaxes(0, 1)
+    for mode in ("train", "random"):
+        torch.manual_seed(1)
+        first = _act(agent, obs, seed=7, mode=mode)
+        default_after = torch.rand(4)
+        torch.manual_seed(2)
+        again = _act(agent, obs, seed=7, mode=mode)
+        np.testing.assert_array_equal(np.stack(first), np.stack(again))  # the default generator played no part
+        torch.manual_seed(1)
+        torch.testing.assert_close(torch.rand(4), default_after)  # and was not drawn from
+        other = _act(agent, obs, seed=8, mode=mode)
+        assert not np.array_equal(np.stack(first), np.stack(other))
+
+
+def test_policy_copy_acts_as_the_agent_did_at_its_last_sync(tiny: Config) -> None:
+    agent = DreamerV2(config=tiny, action_size=ACTION_SIZE)
+    obs = numpy_batch(batch=2, length=3)["image"].swapaxes(0, 1)
+    copy = agent.policy_copy()
+    before = _act(agent, obs, seed=3)
+    np.testing.assert_array_equal(np.stack(_act(copy, obs, seed=3)), np.stack(before))
+    agent.train(numpy_batch())
+    after = _act(agent, obs, seed=3)
+    assert not np.array_equal(np.stack(after), np.stack(before))  # the update changed the policy ...
+    np.testing.assert_array_equal(np.stack(_act(copy, obs, seed=3)), np.stack(before))  # ... not the copy's
+    copy.sync()
+    np.testing.assert_array_equal(np.stack(_act(copy, obs, seed=3)), np.stack(after))
+
+
 def test_state_dict_round_trip_through_weights_only_load(tiny: Config) -> None:
     agent = DreamerV2(config=tiny, action_size=ACTION_SIZE)
     for seed in range(2):

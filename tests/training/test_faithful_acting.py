@@ -54,10 +54,13 @@ class NoisyProbe:
         self.rng = np.random.default_rng(0)
         self.returned: list[np.ndarray] = []
 
-    def policy(self, obs: np.ndarray, state: Any = None, mode: str = "train", is_first: Any = None):
+    def policy(self, obs: np.ndarray, state: Any = None, mode: str = "train", is_first: Any = None, generator=None):
         action = self.rng.uniform(-1, 1, (len(obs), 2)).astype(np.float32)
         self.returned.append(action[0].copy())
         return action, state
+
+    def policy_copy(self) -> NoisyProbe:
+        return self  # acts with no weights, so the copy may be the agent itself
 
     def train(self, batch: dict[str, np.ndarray]) -> dict[str, float]:
         return {}
@@ -123,16 +126,16 @@ def test_replay_windows_start_from_a_fresh_latent_even_mid_episode() -> None:
 
 def test_the_switch_from_prefill_to_training_keeps_the_running_episodes_latent(tmp_path: Path) -> None:
     torch.manual_seed(0)
-    config = make_config(
-        "tiny", ["device=cpu", "train.prefill=30", "train.pretrain_updates=0", f"train.eval_every={NEVER}"]
-    )
+    # updates in turn: the loop then acts with the agent's own policy, which the test records
+    overrides = ["train.prefill=30", "train.pretrain_updates=0", f"train.eval_every={NEVER}"]
+    config = make_config("tiny", ["device=cpu", "train.background_updates=false", *overrides])
     agent = DreamerV2(config=config, action_size=2)
     calls: list[tuple[str, bool, bool]] = []  # (mode, state given, is_first)
     policy = agent.policy
 
-    def recording_policy(obs, state=None, mode="train", *, is_first=None):
+    def recording_policy(obs, state=None, mode="train", *, is_first=None, generator=None):
         calls.append((mode, state is not None, bool(np.asarray(is_first).all())))
-        return policy(obs, state, mode, is_first=is_first)
+        return policy(obs, state, mode, is_first=is_first, generator=generator)
 
     agent.policy = recording_policy  # type: ignore[method-assign]
     with _writer(tmp_path / "d.h5") as writer, Logger(tmp_path, outputs=()) as logger:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import threading
 from pathlib import Path
 from typing import Any
 
@@ -28,9 +29,12 @@ class ProbeAgent:
         self.crash_after = crash_after
         self.rng = np.random.default_rng(0)
 
-    def policy(self, obs: np.ndarray, state: Any = None, mode: str = "train", is_first: Any = None):
+    def policy(self, obs: np.ndarray, state: Any = None, mode: str = "train", is_first: Any = None, generator=None):
         self.calls.append((obs.copy(), np.asarray(is_first, bool).copy()))
         return self.rng.uniform(-1, 1, (len(obs), self.action_size)).astype(np.float32), state
+
+    def policy_copy(self) -> ProbeAgent:
+        return self  # acts with no weights, so the copy may be the agent itself
 
     def train(self, batch: dict[str, np.ndarray]) -> dict[str, float]:
         if self.crash_after is not None and self.trained >= self.crash_after:
@@ -133,3 +137,88 @@ def test_pretraining_without_cut_leaves_no_mark_in_the_episodes(tmp_path: Path) 
             loop.close()
     with open_dataset(tmp_path / "d.h5") as data:
         assert list(data.lengths) == [50, 50, 50, 50]  # no episode cut at 70, no transition dropped
+
+
+def _dreamer_run(tmp_path: Path, in_thread: bool) -> tuple[OnlineTrainer, dict[str, Any], dict[str, np.ndarray]]:
+    """A tiny DreamerV2 trained online on toy_reach for 300 steps with ``train.background_updates``, its updates on
+    their thread or (``in_thread=False``) in turn; returns the loop, the agent's weights and the data."""
+    from coworld.agents.dreamerv2 import DreamerV2
+    from coworld.training.online import Updates
+    from coworld.training.run import seed_everything
+
+    overrides = [
+        "train.background_updates=true",
+        "train.prefill=100",
+        "train.pretrain_updates=3",
+        "train.train_every=5",
+        "train.checkpoint_every=150",
+        "train.eval_every=200",
+        "train.eval_episodes=1",
+    ]
+    config = make_config("tiny", ["device=cpu", *overrides])
+    seed_everything(config.seed)
+    agent = DreamerV2(config=config, action_size=2, device="cpu")
+    with open_writer(tmp_path / "d.h5") as writer, Logger(tmp_path, outputs=()) as logger:
+        loop = OnlineTrainer(
+            agent=agent, task="toy_reach", config=config, logdir=tmp_path, writer=writer, logger=logger
+        )
+        loop._updates = Updates(agent.train, in_thread=in_thread)
+        try:
+            loop.run(max_steps=300, progress=False)
+        finally:
+            loop.close()
+    with open_dataset(tmp_path / "d.h5") as data:
+        episodes = [data.episode(i) for i in range(data.num_episodes)]
+    columns = {key: np.concatenate([episode[key] for episode in episodes]) for key in ("image", "action", "reward")}
+    return loop, agent.state_dict(), columns
+
+
+def test_updates_beside_acting_record_the_same_data_and_train_the_same_weights_as_in_turn(tmp_path: Path) -> None:
+    import torch
+
+    in_turn, in_turn_weights, in_turn_data = _dreamer_run(tmp_path / "in_turn", in_thread=False)
+    beside, beside_weights, beside_data = _dreamer_run(tmp_path / "beside", in_thread=True)
+    # the ratio: every update due by the last step was made, in both
+    assert beside.steps == in_turn.steps == 300
+    assert beside.updates == in_turn.updates == beside.updates_due(300) == 3 + (300 - 100) // 5 + 1
+    assert in_turn.last_eval is not None and beside.last_eval == in_turn.last_eval  # evaluation ran between updates
+    for key in in_turn_data:
+        np.testing.assert_array_equal(beside_data[key], in_turn_data[key], err_msg=key)
+    assert len(np.unique(in_turn_data["action"][100:], axis=0)) > 100  # the trained policy acted, sampling
+    for group in ("world_model", "actor_critic"):
+        for name, tensor in in_turn_weights[group].items():
+            assert torch.equal(beside_weights[group][name], tensor), f"{group}.{name}"
+
+
+class OverlapProbe(ProbeAgent):
+    """Each update waits (up to 5 s) for the agent to act after it started, and records whether it did."""
+
+    def __init__(self) -> None:
+        super().__init__(2)
+        self.acted = threading.Event()
+        self.overlapped: list[bool] = []
+        self.threads: set[str] = set()
+
+    def policy(self, *args: Any, **kwargs: Any):
+        self.acted.set()
+        return super().policy(*args, **kwargs)
+
+    def train(self, batch: dict[str, np.ndarray]) -> dict[str, float]:
+        self.threads.add(threading.current_thread().name)
+        self.acted.clear()
+        self.overlapped.append(self.acted.wait(timeout=5))
+        return super().train(batch)
+
+
+def test_updates_beside_acting_run_while_the_agent_steps_at_the_same_ratio(tmp_path: Path) -> None:
+    agent = OverlapProbe()
+    overrides = ["train.background_updates=true", "train.prefill=50", "train.pretrain_updates=0", "train.train_every=5"]
+    with open_writer(tmp_path / "d.h5") as writer, Logger(tmp_path, outputs=()) as logger:
+        loop = trainer(tmp_path, agent, [*overrides, f"train.checkpoint_every={NEVER}"], writer, logger)
+        try:
+            loop.run(max_steps=200, progress=False, cut_episodes=False)
+        finally:
+            loop.close()
+    assert agent.threads == {"coworld-update"}  # never on the acting thread
+    assert agent.trained == loop.updates == loop.updates_due(loop.steps) == 1 + 150 // 5  # each ended, at the ratio
+    assert all(agent.overlapped[:-1])  # the agent acted during every update but the last, which the run's end awaits
