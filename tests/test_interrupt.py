@@ -258,10 +258,17 @@ def test_coworld_stops_in_each_phase_and_the_same_command_finishes(
     assert final["progress"]["iteration"] == 2 and final["agent"]["updates"] == 50  # exactly 2 x K1
 
 
-@pytest.mark.slow
-def test_the_dreamerv2_collector_stops_and_resumes(tmp_path: Path, processes: ModuleType, helpers: ModuleType) -> None:
+@pytest.mark.parametrize(
+    "background",
+    [pytest.param(False, marks=pytest.mark.slow), True],  # in CI: stopped while an update runs beside acting
+    ids=["in-turn", "beside"],
+)
+def test_the_dreamerv2_collector_stops_and_resumes(
+    tmp_path: Path, processes: ModuleType, helpers: ModuleType, background: bool
+) -> None:
     out = tmp_path / "d.h5"
-    args = [*DV2_COLLECT, "--max-steps", "600", "--out", str(out)]
+    args = [*DV2_COLLECT, "--set", f"train.background_updates={str(background).lower()}"]
+    args += ["--max-steps", "600", "--out", str(out)]
     proc = processes.start_cli(*args)
     checkpoint = tmp_path / "d.run" / "checkpoint.pt"
     processes.wait_for(checkpoint.exists, proc, what="the first checkpoint")

@@ -23,13 +23,16 @@ MP_CONTEXT = "spawn"
 a process that has rendered can leave the child with a broken GL context)."""
 
 
-def make_vector(name: str, num_envs: int, seed: int = 0, **overrides: Any) -> gym.vector.VectorEnv:
+def make_vector(
+    name: str, num_envs: int, seed: int = 0, *, workers: bool | None = None, **overrides: Any
+) -> gym.vector.VectorEnv:
     """``num_envs`` copies of task ``name``, env ``i`` built with ``make(name, seed + i, **overrides)``.
 
     ``num_envs > 1`` runs each env in its own worker process (:class:`gymnasium.vector.AsyncVectorEnv`,
     'spawn' start method, observations in shared memory); ``num_envs == 1`` steps in this process
-    (:class:`gymnasium.vector.SyncVectorEnv`). Scripts that create worker processes need the usual
-    ``if __name__ == "__main__":`` guard.
+    (:class:`gymnasium.vector.SyncVectorEnv`) unless ``workers`` is true (``workers`` false: in this process
+    whatever ``num_envs``). Scripts that create worker processes need the usual ``if __name__ == "__main__":``
+    guard.
 
     Autoreset mode: **NEXT_STEP** (Gymnasium's default). When env ``i`` returns ``terminated`` or ``truncated``,
     the following ``step()`` ignores its action, resets it and returns the first observation of the new
@@ -50,7 +53,7 @@ def make_vector(name: str, num_envs: int, seed: int = 0, **overrides: Any) -> gy
     resolve_settings(task_spec(name), overrides)  # fail here, not in a worker
     env_fns = [functools.partial(make, name, seed + i, **overrides) for i in range(num_envs)]
     mode = gym.vector.AutoresetMode.NEXT_STEP
-    if num_envs == 1:
+    if not (num_envs > 1 if workers is None else workers):
         return gym.vector.SyncVectorEnv(env_fns, autoreset_mode=mode)
     ensure_gl_backend()  # workers inherit the environment variable
     with _workers_ignoring_signals():

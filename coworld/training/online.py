@@ -250,7 +250,9 @@ class OnlineTrainer:
         """
         cfg = self.config.train
         if self._venv is None:
-            self._venv = envs.make_vector(self.task, cfg.envs, seed=self.config.seed + self.steps)
+            # beside learning, the environments step in worker processes: this process's other thread is learning
+            workers = True if self.background else None
+            self._venv = envs.make_vector(self.task, cfg.envs, seed=self.config.seed + self.steps, workers=workers)
             self._obs = None
         n = cfg.envs
         if self._obs is None:

@@ -48,6 +48,18 @@ def test_two_walker_workers_render_their_own_episodes() -> None:
         envs.close()
 
 
+def test_workers_overrides_where_the_envs_step() -> None:
+    one_in_a_worker = make_vector("toy_reach", 1, seed=5, workers=True)
+    two_here = make_vector("toy_reach", 2, seed=5, workers=False)
+    try:
+        assert len(one_in_a_worker.processes) == 1 and one_in_a_worker.processes[0].is_alive()
+        assert not hasattr(two_here, "processes")
+        np.testing.assert_array_equal(one_in_a_worker.reset()[0][0], two_here.reset()[0][0])  # the same env 0
+    finally:
+        one_in_a_worker.close()
+        two_here.close()
+
+
 def test_bad_input_raises_in_the_caller() -> None:
     with pytest.raises(UnknownTaskError):
         make_vector("nope", 2)
