@@ -19,6 +19,7 @@ the uncommitted rows.
 
 from __future__ import annotations
 
+import glob
 import json
 import os
 import platform
@@ -168,7 +169,11 @@ class DatasetWriter:
         reference: Mapping[str, Any],
         compression: str,
     ) -> h5py.File:
-        # Built under a temporary name and renamed into place: the path never names a half-made file.
+        # Built under a temporary name and renamed into place: the path never names a half-made file. A process
+        # killed between the two left its temporary file (``<name>.<pid>.tmp``): this one replaces what it made.
+        for leftover in self.path.parent.glob(f"{glob.escape(self.path.name)}.*.tmp"):
+            if leftover.name[len(self.path.name) + 1 : -len(".tmp")].isdigit():
+                leftover.unlink(missing_ok=True)
         tmp = self.path.with_name(f"{self.path.name}.{os.getpid()}.tmp")
         try:
             self._build(tmp, env_config, quality, collector, reference, compression)

@@ -106,6 +106,18 @@ def test_existing_file_is_never_overwritten_without_force(
         assert data.num_episodes == 1 and data.quality == "expert"
 
 
+def test_a_new_file_replaces_the_temporary_files_that_killed_writers_left(tmp_path: Path, helpers: ModuleType) -> None:
+    path = tmp_path / "m.h5"
+    left = [tmp_path / "m.h5.17902.tmp", tmp_path / "m.h5.3.tmp"]  # a kill between building and renaming
+    kept = [tmp_path / "m.h5.lock.17903.tmp", tmp_path / "other.h5.17902.tmp", tmp_path / "m.h5x.1.tmp"]
+    for file in left + kept:
+        file.write_bytes(b"partial")
+    with DatasetWriter(path, quality="random", **helpers.WRITER_ARGS) as writer:
+        writer.close(complete=True)
+    assert not any(file.exists() for file in left)
+    assert all(file.exists() for file in kept)  # another writer's lock in the making, other datasets' files
+
+
 def test_resume_continues_a_partial_dataset(
     tmp_path: Path, helpers: ModuleType, episodes: list[dict[str, Any]]
 ) -> None:
