@@ -187,7 +187,6 @@ class OnlineTrainer:
             config.seed + ACT_SEED_OFFSET
         )
         """Where acting draws its random numbers beside learning (torch's default generator otherwise)."""
-        """Where acting draws its random numbers (never torch's default generator, which the updates use)."""
 
     # -- persistence -----------------------------------------------------------------------------------------------
     @property
