@@ -34,8 +34,12 @@ every ``coworld`` command runs) and without them. With
 (those benchmarks/learning_side_by_side.py matched) and the same batch; ``--authors PATH`` the CoWorld authors'
 release's (its ``WorldModel._train`` in source pre-training mode, a plain DreamerV2 step, then
 ``ImagBehavior._train``) at its own DMC config (cnn 32, deter 200, continuous latents of 50, horizon 15) with our
-batch. Their code is run from their checkouts, not copied; ``--peer-python`` names an interpreter with torch and
-ruamel.yaml.
+batch; ``--r2dreamer PATH`` NM512/r2dreamer's (its ``Dreamer.update``, twice: its DreamerV3 with the image decoder,
+and decoder-free R2-Dreamer) at the tiny preset's widths (:func:`r2dreamer_settings`), eager and in float32 (its
+update autocasts to float16 on any device, which on a CPU is ten times slower). Their code is run from their
+checkouts, not copied; ``--peer-python`` names an interpreter with torch and ruamel.yaml (and, for r2dreamer,
+hydra-core and tensordict). ``--flops`` has every side count the floating-point operations of one more update, before
+the warm-up and untimed (PyTorch's ``FlopCounterMode``: matrix products and convolutions, forward and backward).
 """
 
 from __future__ import annotations
@@ -55,6 +59,7 @@ from pathlib import Path
 import numpy as np
 import torch
 from learning_side_by_side import REFERENCE_NESTED, REFERENCE_SETTINGS
+from torch.utils.flop_counter import FlopCounterMode
 
 from coworld.agents.dreamerv2 import DreamerV2
 from coworld.config import Config, make_config
@@ -192,8 +197,12 @@ def worker(args: argparse.Namespace) -> None:
         updates["coworld target"] = lambda: pair.train_target(batch)
         updates["coworld source"] = lambda: pair.train_source(batch)
     out: dict[str, object] = {"coworld": str(Path(coworld.__file__).parent.parent)}
-    warmup_s = {}
+    warmup_s, flops = {}, {}
     for name, update in updates.items():
+        if args.flops:  # one more update before the warm-up, counted, not timed
+            with FlopCounterMode(display=False) as counter:
+                update()
+            flops[name] = counter.get_total_flops()
         start = time.perf_counter()
         for _ in range(args.warmup):
             update()
@@ -204,16 +213,17 @@ def worker(args: argparse.Namespace) -> None:
             update()
             times.append(time.perf_counter() - start)
         out[name] = times
-    print(json.dumps({**out, "warmup_s": warmup_s}))
+    print(json.dumps({**out, "warmup_s": warmup_s, "flops": flops}))
 
 
-_PEER_TIMING = textwrap.dedent(
+_PEER_LOOP = textwrap.dedent(
     """
-    def update():  # as the peer's Dreamer._train: world model, then behaviour from its posterior
-        post, _, _ = wm._train(data)
-        reward = lambda f, s, a: wm.heads["reward"](wm.dynamics.get_feat(s)).mode()
-        behavior._train(post, reward)
-
+    flops = {}
+    if run["flops"]:
+        from torch.utils.flop_counter import FlopCounterMode
+        with FlopCounterMode(display=False) as counter:
+            update()
+        flops["dreamerv2"] = counter.get_total_flops()
     for _ in range(run["warmup"]):
         update()
     times = []
@@ -221,10 +231,24 @@ _PEER_TIMING = textwrap.dedent(
         start = time.perf_counter()
         update()
         times.append(time.perf_counter() - start)
-    print(json.dumps({"coworld": reference, "dreamerv2": times}))
+    print(json.dumps({"coworld": reference, "dreamerv2": times, "flops": flops}))
     """
 )
-"""The end of each peer driver: ``wm``, ``behavior``, ``data``, ``run`` and ``reference`` set by its start."""
+"""The end of each peer driver: ``update``, ``run`` and ``reference`` set by its start."""
+
+_PEER_TIMING = (
+    textwrap.dedent(
+        """
+    def update():  # as the peer's Dreamer._train: world model, then behaviour from its posterior
+        post, _, _ = wm._train(data)
+        reward = lambda f, s, a: wm.heads["reward"](wm.dynamics.get_feat(s)).mode()
+        behavior._train(post, reward)
+    """
+    )
+    + _PEER_LOOP
+)
+"""The end of the drivers of dreamerv3-torch and the authors' release: ``wm``, ``behavior``, ``data``, ``run`` and
+``reference`` set by its start."""
 
 DREAMERV3_DRIVER = (
     textwrap.dedent(
@@ -319,6 +343,81 @@ AUTHORS_DRIVER = (
 )
 
 
+R2DREAMER_DRIVER = (
+    textwrap.dedent(
+        """
+    # Written by coworld's benchmarks/train_throughput.py: times NM512/r2dreamer's update (its Dreamer.update: one
+    # backward through world model, imagination losses and replay value, then its optimiser step) on a random batch
+    # at the sizes given; prints JSON like our --worker.
+    import json, pathlib, sys, time, types
+    reference, settings = sys.argv[1], json.loads(sys.argv[2])
+    sys.path.insert(0, reference)
+    import numpy as np, torch
+    from hydra import compose, initialize_config_dir
+    from tensordict import TensorDict
+    import dreamer, tools
+    run = settings.pop("run")
+    torch.set_num_threads(run["threads"])
+    with initialize_config_dir(config_dir=str(pathlib.Path(reference) / "configs"), version_base=None):
+        config = compose(config_name="configs", overrides=[f"{key}={value}" for key, value in settings.items()])
+    # Its update autocasts to float16 whatever the device; on a CPU that is 10x slower than float32, so float32.
+    dreamer.autocast = lambda device_type, dtype: torch.autocast(device_type, enabled=False)
+    tools.set_seed_everywhere(0)
+    space = types.SimpleNamespace(spaces={"image": types.SimpleNamespace(shape=(64, 64, 3))})
+    agent = dreamer.Dreamer(config.model, space, types.SimpleNamespace(shape=(run["action_size"],))).to("cpu")
+    rng = np.random.default_rng(0)
+    batch, length, actions = config.batch_size, config.batch_length, run["action_size"]
+    first = np.zeros((batch, length, 1), bool)  # its environments give scalars a trailing axis of 1
+    first[:, 0] = True
+    arrays = {
+        "image": rng.integers(0, 256, (batch, length, 64, 64, 3), dtype=np.uint8),
+        "action": rng.uniform(-1, 1, (batch, length, actions)).astype(np.float32),
+        "reward": rng.normal(size=(batch, length, 1)).astype(np.float32),
+        "is_first": first,
+        "is_terminal": np.zeros((batch, length, 1), bool),
+        "is_last": np.zeros((batch, length, 1), bool),
+    }
+
+    class Replay:  # its Buffer's interface: a fresh batch (its update scales the images in place), start latents
+        def sample(self):
+            data = TensorDict({k: torch.as_tensor(v.copy()) for k, v in arrays.items()}, batch_size=(batch, length))
+            return data, None, agent.rssm.initial(batch)
+
+        def update(self, index, stoch, deter):
+            pass
+
+    replay = Replay()
+    update = lambda: agent.update(replay)
+    """
+    )
+    + _PEER_LOOP
+)
+
+
+def r2dreamer_settings(config: Config, rep_loss: str) -> dict[str, str]:
+    """r2dreamer's Hydra overrides at our tiny preset's widths and batch (raises on other sizes): the same
+    encoder and decoder channels (8, 16, 32, 64), deterministic and hidden 64, 8 x 8 latents, units 64,
+    horizon 10; its own layers otherwise (5 x 5 stride-1 convolutions with max-pooling, upsampling in the
+    decoder, block-diagonal GRU of 8 blocks), eager."""
+    dreamerv3_settings(config)  # the same size check
+    return {
+        "device": "cpu",
+        "batch_size": str(config.train.batch_size),
+        "batch_length": str(config.train.seq_len),
+        "model.compile": "False",
+        "model.rep_loss": rep_loss,
+        "model.depth": "8",
+        "model.encoder.cnn.mults": "[1,2,4,8]",
+        "model.decoder.cnn.mults": "[1,2,4,8]",
+        "model.deter": "64",
+        "model.hidden": "64",
+        "model.rssm.stoch": "8",
+        "model.discrete": "8",
+        "model.units": "64",
+        "model.imag_horizon": "10",
+    }
+
+
 def dreamerv3_settings(config: Config) -> dict[str, object]:
     """dreamerv3-torch's config at our network sizes and batch (the tiny and cpu presets' sizes, which
     benchmarks/learning_side_by_side.py matched in its names); raises if ``config`` has other sizes."""
@@ -342,11 +441,18 @@ def interleave(args: argparse.Namespace) -> None:
     # The peers: side label -> the driver's command (their checkout's path and a JSON of what to time).
     config = args_config(args)
     run = {"threads": args.threads, "updates": args.updates, "warmup": args.warmup, "action_size": args.action_size}
+    run["flops"] = args.flops
     peers: dict[str, list[str]] = {}
     if args.dreamerv3:
         sides.append(("dreamerv3-torch", Path(args.dreamerv3).resolve(), False))
         settings = {**dreamerv3_settings(config), "run": run}
         peers["dreamerv3-torch"] = [args.peer_python, "-c", DREAMERV3_DRIVER, str(sides[-1][1]), json.dumps(settings)]
+    if args.r2dreamer:
+        for label, rep_loss in (("r2dreamer, decoder", "dreamer"), ("r2dreamer, R2", "r2dreamer")):
+            sides.append((label, Path(args.r2dreamer).resolve(), False))
+            settings = {**r2dreamer_settings(config, rep_loss), "run": run}
+            peers[label] = [args.peer_python, "-W", "ignore", "-c", R2DREAMER_DRIVER, str(sides[-1][1])]
+            peers[label].append(json.dumps(settings))
     if args.authors:
         sides.append(("authors' release", Path(args.authors).resolve(), False))
         batch = {"batch_size": config.train.batch_size, "batch_length": config.train.seq_len}
@@ -354,6 +460,7 @@ def interleave(args: argparse.Namespace) -> None:
     common = ["--threads", str(args.threads), "--updates", str(args.updates), "--warmup", str(args.warmup)]
     common += ["--preset", args.preset, "--device", args.device, "--algo", args.algo]
     common += ["--action-size", str(args.action_size)] + [f"--set={item}" for item in args.set]
+    common += ["--flops"] if args.flops else []
     rows = []
     for block in range(args.blocks):
         for label, tree, tuned in sides:
@@ -368,16 +475,17 @@ def interleave(args: argparse.Namespace) -> None:
             stdout = subprocess.run(command, env=env, cwd=tree, capture_output=True, check=True, text=True).stdout
             result = json.loads(stdout.strip().splitlines()[-1])  # the peer prints its model's shapes first
             assert Path(result.pop("coworld")) == tree, "the worker imported another checkout"
-            warmup_s = result.pop("warmup_s", {})
+            warmup_s, flops = result.pop("warmup_s", {}), result.pop("flops", {})
             for name, times in result.items():
                 rows.append((block, label, name, load, min(times), statistics.median(times)))
                 print(
-                    f"block {block} {label:<18}{name:<16} load {load:5.2f}  min {min(times):.3f} s  median "
+                    f"block {block} {label:<20}{name:<16} load {load:5.2f}  min {min(times):.3f} s  median "
                     f"{statistics.median(times):.3f} s"
-                    + (f"  (warm-up {warmup_s[name]:.1f} s)" if name in warmup_s else ""),
+                    + (f"  (warm-up {warmup_s[name]:.1f} s)" if name in warmup_s else "")
+                    + (f"  {flops[name] / 1e9:.1f} GFLOP" if name in flops else ""),
                     flush=True,
                 )
-    print(f"\n{'update':<16}{'side':<18}{'min s (best block)':>20}{'median of block medians':>25}{'x base':>8}")
+    print(f"\n{'update':<16}{'side':<20}{'min s (best block)':>20}{'median of block medians':>25}{'x base':>8}")
     for name in dict.fromkeys(row[2] for row in rows):
         base = statistics.median(r[5] for r in rows if r[2] == name and r[1] == "base")
         for label, _, _ in sides:
@@ -385,7 +493,7 @@ def interleave(args: argparse.Namespace) -> None:
             if not mine:  # the peer times the DreamerV2 update only
                 continue
             median = statistics.median(r[5] for r in mine)
-            print(f"{name:<16}{label:<18}{min(r[4] for r in mine):>20.3f}{median:>25.3f}{base / median:>8.2f}")
+            print(f"{name:<16}{label:<20}{min(r[4] for r in mine):>20.3f}{median:>25.3f}{base / median:>8.2f}")
     if args.json:
         keys = ("block", "side", "update", "load", "min_s", "median_s")
         Path(args.json).write_text(json.dumps([dict(zip(keys, row, strict=True)) for row in rows], indent=2))
@@ -439,6 +547,12 @@ def main() -> None:
         help="with --interleave, also time NM512/dreamerv3-torch's update at matched sizes from its checkout at PATH",
     )
     parser.add_argument(
+        "--r2dreamer",
+        metavar="PATH",
+        help="with --interleave, also time NM512/r2dreamer's update (its DreamerV3 with a decoder, and R2-Dreamer) at "
+        "matched widths from its checkout at PATH (its peer interpreter needs hydra-core and tensordict)",
+    )
+    parser.add_argument(
         "--authors",
         metavar="PATH",
         help="with --interleave, also time the CoWorld authors' release's DreamerV2 update from its checkout at PATH, "
@@ -446,6 +560,12 @@ def main() -> None:
     )
     parser.add_argument(
         "--peer-python", default=sys.executable, help="interpreter for the peers (needs torch, ruamel.yaml)"
+    )
+    parser.add_argument(
+        "--flops",
+        action="store_true",
+        help="with --interleave, each side also counts the floating-point operations of one update "
+        "(torch.utils.flop_counter: matrix products and convolutions, forward and backward)",
     )
     parser.add_argument("--profile", action="store_true", help="torch.profiler table of whole DreamerV2 updates")
     parser.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
