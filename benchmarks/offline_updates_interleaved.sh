@@ -19,8 +19,10 @@ for block in $(seq 0 $((blocks - 1))); do
     run="$out/$side-b$block"
     [ -e "$run" ] && { echo "$run exists; choose an empty OUT" >&2; exit 2; }
     load=$(cut -d' ' -f1 /proc/loadavg)
-    # `python -c` rather than `-m coworld.cli`: older checkouts' cli.py has no __main__ guard.
-    (cd "$tree" && PYTHONPATH="$tree" "$python" -c 'from coworld.cli import main; main()' train --algo dreamerv2 \
+    # `python -c` rather than `-m coworld.cli`: older checkouts' cli.py has no __main__ guard, nor run() (the
+    # entry that preloads tcmalloc), so each tree runs as its own `coworld` command does.
+    (cd "$tree" && PYTHONPATH="$tree" "$python" -c 'import coworld.cli as c; getattr(c, "run", c.main)()' \
+      train --algo dreamerv2 \
       --source toy_reach --target toy_reach_shifted --dataset "$data" --preset tiny --threads 1 --no-progress \
       --set train.batch_size=16 --set train.seq_len=32 --set coworld.iterations=1 --set coworld.target_updates=200 \
       --set train.log_every=50 --set train.eval_episodes=1 --logdir "$run" "$@" > "$run.log" 2>&1)

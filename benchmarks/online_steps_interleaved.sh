@@ -20,7 +20,8 @@ for block in $(seq 0 $((blocks - 1))); do
     data="$out/$side-b$block.h5"
     [ -e "$data" ] && { echo "$data exists; choose an empty OUT" >&2; exit 2; }
     load=$(cut -d' ' -f1 /proc/loadavg)
-    (cd "$tree" && PYTHONPATH="$tree" "$python" -c 'from coworld.cli import main; main()' collect --task walker_walk \
+    (cd "$tree" && PYTHONPATH="$tree" "$python" -c 'import coworld.cli as c; getattr(c, "run", c.main)()' \
+      collect --task walker_walk \
       --preset cpu --threads 1 --quiet --max-steps "$steps" --out "$data" --set train.eval_every=1000000000 \
       --set train.log_every=250 $sets > "$out/$side-b$block.log" 2>&1)
     metrics="$out/$side-b$block.run/metrics.jsonl"

@@ -27,8 +27,9 @@ checkout at ``PATH`` in alternating fresh processes, ``--blocks`` rounds, each p
 after ``--warmup``; it prints the min and median seconds per update of each side and block with the 1-minute load
 average read before the block, and the seconds the warm-up updates took (with ``--set compile=true``, the
 compilation; set ``TORCHINDUCTOR_CACHE_DIR`` to an empty folder to time it without inductor's on-disk cache).
-This tree runs twice per block: with the CLI's malloc settings (:func:`coworld.allocator.keep_freed_memory`, as
-every ``coworld`` command runs) and without them. With
+This tree runs up to three times per block: with glibc's malloc as it comes (``new``), tuned
+(:func:`coworld.allocator.keep_freed_memory`, ``new+malloc``: how the ``coworld`` command runs where tcmalloc is not
+installed) and with tcmalloc preloaded (``new+tcmalloc``: how it runs where it is). With
 ``--dreamerv3 PATH`` each block also times NM512/dreamerv3-torch's update from its checkout at ``PATH`` (its
 ``Dreamer._train``: world model, then behaviour in imagination), at the tiny preset's sizes in its config names
 (those benchmarks/learning_side_by_side.py matched) and the same batch; ``--authors PATH`` the CoWorld authors'
@@ -437,24 +438,32 @@ def dreamerv3_settings(config: Config) -> dict[str, object]:
 def interleave(args: argparse.Namespace) -> None:
     """Alternate worker processes of this tree and of ``args.interleave``; print min / median per block."""
     here = Path(__file__).resolve().parent.parent
-    sides = [("base", Path(args.interleave).resolve(), False), ("new", here, False), ("new+malloc", here, True)]
+    from coworld import allocator  # this tree's (a worker imports the coworld of its side's checkout)
+
+    # (label, checkout, allocator): "" glibc's defaults, "malloc" glibc tuned, "tcmalloc" preloaded.
+    sides = [("base", Path(args.interleave).resolve(), ""), ("new", here, ""), ("new+malloc", here, "malloc")]
+    tcmalloc = allocator.tcmalloc_preload()
+    if tcmalloc is not None:
+        sides.append(("new+tcmalloc", here, "tcmalloc"))
+    else:
+        print("tcmalloc is not installed (or COWORLD_MALLOC=glibc): no new+tcmalloc side", file=sys.stderr)
     # The peers: side label -> the driver's command (their checkout's path and a JSON of what to time).
     config = args_config(args)
     run = {"threads": args.threads, "updates": args.updates, "warmup": args.warmup, "action_size": args.action_size}
     run["flops"] = args.flops
     peers: dict[str, list[str]] = {}
     if args.dreamerv3:
-        sides.append(("dreamerv3-torch", Path(args.dreamerv3).resolve(), False))
+        sides.append(("dreamerv3-torch", Path(args.dreamerv3).resolve(), ""))
         settings = {**dreamerv3_settings(config), "run": run}
         peers["dreamerv3-torch"] = [args.peer_python, "-c", DREAMERV3_DRIVER, str(sides[-1][1]), json.dumps(settings)]
     if args.r2dreamer:
         for label, rep_loss in (("r2dreamer, decoder", "dreamer"), ("r2dreamer, R2", "r2dreamer")):
-            sides.append((label, Path(args.r2dreamer).resolve(), False))
+            sides.append((label, Path(args.r2dreamer).resolve(), ""))
             settings = {**r2dreamer_settings(config, rep_loss), "run": run}
             peers[label] = [args.peer_python, "-W", "ignore", "-c", R2DREAMER_DRIVER, str(sides[-1][1])]
             peers[label].append(json.dumps(settings))
     if args.authors:
-        sides.append(("authors' release", Path(args.authors).resolve(), False))
+        sides.append(("authors' release", Path(args.authors).resolve(), ""))
         batch = {"batch_size": config.train.batch_size, "batch_length": config.train.seq_len}
         peers["authors' release"] = [args.peer_python, "-c", AUTHORS_DRIVER, str(sides[-1][1]), json.dumps(run | batch)]
     common = ["--threads", str(args.threads), "--updates", str(args.updates), "--warmup", str(args.warmup)]
@@ -463,15 +472,15 @@ def interleave(args: argparse.Namespace) -> None:
     common += ["--flops"] if args.flops else []
     rows = []
     for block in range(args.blocks):
-        for label, tree, tuned in sides:
+        for label, tree, malloc in sides:
             with open("/proc/loadavg") as f:
                 load = float(f.read().split()[0])
             if label in peers:
                 env = {**os.environ, "OMP_NUM_THREADS": str(args.threads)}
                 command = peers[label]
             else:
-                env = {**os.environ, "PYTHONPATH": str(tree)}
-                command = [sys.executable, __file__, "--worker", *common] + (["--allocator"] if tuned else [])
+                env = {**os.environ, "PYTHONPATH": str(tree), **(tcmalloc if malloc == "tcmalloc" else {})}
+                command = [sys.executable, __file__, "--worker", *common] + (["--allocator"] if malloc else [])
             stdout = subprocess.run(command, env=env, cwd=tree, capture_output=True, check=True, text=True).stdout
             result = json.loads(stdout.strip().splitlines()[-1])  # the peer prints its model's shapes first
             assert Path(result.pop("coworld")) == tree, "the worker imported another checkout"

@@ -61,7 +61,7 @@ class _LazyGroup(click.Group):
             sys.exit(2)
 
     def main(self, *args: Any, **kwargs: Any) -> Any:
-        allocator.keep_freed_memory()  # the process's malloc keeps freed tensors' memory (a faster update)
+        allocator.keep_freed_memory()  # glibc's malloc keeps freed tensors' memory (a no-op under tcmalloc)
         with interrupt.handling_signals():  # from the start: importing a command can take seconds
             try:
                 return super().main(*args, **kwargs)
@@ -79,5 +79,12 @@ def main() -> None:
     """Offline visual RL across domains: collect datasets, train CoWorld and baselines, evaluate."""
 
 
-if __name__ == "__main__":  # `python -m coworld.cli ...`, as the benchmarks run a checkout without installing it
+def run() -> None:
+    """The ``coworld`` command: :func:`main` in a process with tcmalloc preloaded where it is installed (the
+    command starts over with it; :mod:`coworld.allocator`), else with glibc's malloc tuned."""
+    allocator.exec_with_tcmalloc()
     main()
+
+
+if __name__ == "__main__":  # `python -m coworld.cli ...`, as the benchmarks run a checkout without installing it
+    run()

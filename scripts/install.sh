@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Install coworld and everything it needs into ./.venv (idempotent: a second run only checks).
-#   - Debian packages for headless MuJoCo rendering (EGL with Mesa's software renderer), when missing
+#   - Debian packages for headless MuJoCo rendering (EGL with Mesa's software renderer) and tcmalloc, when missing
 #   - a virtual environment with torch 2.13.0 (CPU build unless a torch is already in the venv),
 #     the pinned simulator stack and coworld itself in editable mode with its dev extras.
 # Environment: PYTHON (interpreter for the venv, default python3), VENV (default .venv),
@@ -10,9 +10,10 @@ cd "$(dirname "$0")/.."
 PYTHON=${PYTHON:-python3}
 VENV=${VENV:-.venv}
 
-# 1. Debian packages for EGL rendering (libEGL + Mesa's llvmpipe).
+# 1. Debian packages for EGL rendering (libEGL + Mesa's llvmpipe), and tcmalloc, the memory allocator the coworld
+#    command preloads (coworld/allocator.py).
 need=()
-for pkg in libegl1 libgl1 libegl-mesa0 libgl1-mesa-dri libglvnd0; do
+for pkg in libegl1 libgl1 libegl-mesa0 libgl1-mesa-dri libglvnd0 libtcmalloc-minimal4; do
   dpkg -s "$pkg" >/dev/null 2>&1 || need+=("$pkg")
 done
 if ((${#need[@]})); then
@@ -20,7 +21,7 @@ if ((${#need[@]})); then
     echo "install: apt-get install ${need[*]}"
     apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "${need[@]}" >/dev/null
   else
-    echo "install: missing Debian packages for rendering: ${need[*]} (run: sudo apt-get install ${need[*]})" >&2
+    echo "install: missing Debian packages for rendering and tcmalloc: ${need[*]} (run: sudo apt-get install ${need[*]})" >&2
     exit 1
   fi
 fi

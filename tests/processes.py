@@ -15,7 +15,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-CLI = [sys.executable, "-c", "from coworld.cli import main; main()"]
+CLI = [sys.executable, "-c", "from coworld.cli import run; run()"]
 PROGRESS_LINE = re.compile(r"\[(\d+:)?\d+:\d+<")
 """What a plain progress line holds (``[elapsed<remaining``; see coworld/training/progress.py)."""
 DATA_HELPERS = str(Path(__file__).parent / "data" / "helpers.py")

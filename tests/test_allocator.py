@@ -1,11 +1,16 @@
-"""The CLI's malloc settings: freed memory stays with the process for the next update."""
+"""The CLI's allocator: tcmalloc preloaded where installed, else glibc's malloc tuned to keep freed memory."""
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 
 import pytest
+
+from coworld import allocator
+
+pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc malloc and LD_PRELOAD")
 
 PROBE = """
 import sys
@@ -21,12 +26,78 @@ del block
 print(before - resident())
 """
 
+AT_EXIT = (
+    "import atexit, os; from coworld import allocator; "
+    "atexit.register(lambda: print(os.getpid(), allocator.tcmalloc_loaded())); "
+    "from coworld.cli import run; run()"
+)
+"""The ``coworld`` command's entry; at exit it prints its PID and whether tcmalloc is loaded (where the entry starts
+over, this code runs again in the new program, so the line comes from there)."""
 
-@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc malloc settings")
+
+def _clean_env(**extra: str) -> dict[str, str]:
+    """This process's environment without any allocator choice, plus ``extra``."""
+    env = {key: value for key, value in os.environ.items() if key != "LD_PRELOAD"}
+    return {key: value for key, value in env.items() if not key.startswith("COWORLD_MALLOC")} | extra
+
+
 def test_keep_freed_memory_keeps_a_freed_block_resident() -> None:
     def released(mode: str) -> int:
-        out = subprocess.run([sys.executable, "-c", PROBE, mode], capture_output=True, text=True, check=True)
+        command = [sys.executable, "-c", PROBE, mode]
+        out = subprocess.run(command, capture_output=True, text=True, check=True, env=_clean_env())
         return int(out.stdout)
 
     assert released("default") > 32 << 20  # glibc unmaps a large freed block
     assert released("tuned") < 1 << 20  # with the settings it stays for reuse
+
+
+def test_tcmalloc_is_installed(monkeypatch: pytest.MonkeyPatch) -> None:
+    """scripts/install.sh installs it (Debian's libtcmalloc-minimal4); without it the command runs slower."""
+    monkeypatch.delenv(allocator.CHOICE, raising=False)
+    preload = allocator.tcmalloc_preload()
+    assert preload is not None and "tcmalloc" in preload["LD_PRELOAD"]
+
+
+def test_the_coworld_command_runs_with_tcmalloc_in_the_same_process() -> None:
+    process = subprocess.Popen(
+        [sys.executable, "-c", AT_EXIT, "--version"], stdout=subprocess.PIPE, text=True, env=_clean_env()
+    )
+    out, _ = process.communicate(timeout=120)
+    assert process.returncode == 0
+    assert "coworld" in out  # the command ran
+    pid, loaded = out.splitlines()[-1].split()
+    assert int(pid) == process.pid  # started over in place: signals sent to the PID reach it
+    assert loaded == "True"
+
+
+def test_coworld_malloc_glibc_keeps_glibc() -> None:
+    out = subprocess.run(
+        [sys.executable, "-c", AT_EXIT, "--version"],
+        capture_output=True,
+        text=True,
+        check=True,
+        env=_clean_env(COWORLD_MALLOC="glibc"),
+    )
+    assert out.stdout.splitlines()[-1].split()[1] == "False"
+
+
+def test_a_bad_coworld_malloc_is_one_line_and_exit_2() -> None:
+    out = subprocess.run(
+        [sys.executable, "-c", "from coworld.cli import run; run()", "--version"],
+        capture_output=True,
+        text=True,
+        env=_clean_env(COWORLD_MALLOC="jemalloc"),
+    )
+    assert out.returncode == 2
+    assert out.stderr.strip().splitlines() == ["error: COWORLD_MALLOC='jemalloc': use tcmalloc or glibc"]
+
+
+def test_keep_freed_memory_is_a_no_op_under_tcmalloc(monkeypatch: pytest.MonkeyPatch) -> None:
+    code = "from coworld import allocator; print(allocator.tcmalloc_loaded(), allocator.keep_freed_memory())"
+    monkeypatch.delenv(allocator.CHOICE, raising=False)
+    preload = allocator.tcmalloc_preload()
+    assert preload is not None
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True, env=_clean_env(**preload)
+    )
+    assert out.stdout.split() == ["True", "False"]

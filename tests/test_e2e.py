@@ -19,7 +19,7 @@ import torch
 from coworld.data import open_dataset
 from coworld.training.logger import read_metrics
 
-CLI = [sys.executable, "-c", "from coworld.cli import main; main()"]
+CLI = [sys.executable, "-c", "from coworld.cli import run; run()"]
 FAST = ["--set", "train.prefill=100", "--set", "train.eval_episodes=2", "--device", "cpu"]
 SCHEDULE = [
     "--set",

@@ -110,7 +110,7 @@ def test_eval_missing_and_corrupt_checkpoint(tmp_path):
 )
 def test_real_subprocess_exit_code(args):
     proc = subprocess.run(
-        [sys.executable, "-c", "from coworld.cli import main; main()", *args],
+        [sys.executable, "-c", "from coworld.cli import run; run()", *args],
         capture_output=True,
         text=True,
         timeout=120,

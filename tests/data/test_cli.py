@@ -18,7 +18,7 @@ from click.testing import CliRunner
 from coworld.cli import main
 from coworld.data import open_dataset
 
-COWORLD = [sys.executable, "-c", "from coworld.cli import main; main()"]
+COWORLD = [sys.executable, "-c", "from coworld.cli import run; run()"]
 
 
 def test_info_reports_counts_returns_scores_and_size(dataset_path: Path, episodes: list[dict[str, Any]]) -> None:

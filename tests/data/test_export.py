@@ -19,7 +19,7 @@ from coworld.data import DatasetWriter, export_minari, export_npz_episodes, impo
 from coworld.data.collect import dataset_fields
 from coworld.errors import CoworldError
 
-COWORLD = [sys.executable, "-c", "from coworld.cli import main; main()"]
+COWORLD = [sys.executable, "-c", "from coworld.cli import run; run()"]
 README = Path(__file__).parents[2] / "datasets" / "README.md"
 LENGTHS, TERMINATED = [6, 3, 9, 4, 5], [False, True, False, True, False]
 

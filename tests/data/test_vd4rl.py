@@ -27,7 +27,7 @@ from coworld.data.vd4rl import scan_vd4rl
 from coworld.errors import CoworldError
 from coworld.training.logger import read_metrics
 
-COWORLD = [sys.executable, "-c", "from coworld.cli import main; main()"]
+COWORLD = [sys.executable, "-c", "from coworld.cli import run; run()"]
 A = 6  # V-D4RL's walker_walk and cheetah_run
 
 

@@ -46,7 +46,7 @@ def test_render_writes_the_frames_of_an_episode(tmp_path: Path) -> None:
 
 
 def test_unknown_task_exits_2_with_one_line(tmp_path: Path) -> None:
-    code = "import sys; sys.argv = ['coworld'] + sys.argv[1:]; from coworld.cli import main; main()"
+    code = "import sys; sys.argv = ['coworld'] + sys.argv[1:]; from coworld.cli import run; run()"
     result = subprocess.run(
         [sys.executable, "-c", code, "render", "--task", "walker_jog", "--out", str(tmp_path / "x")],
         capture_output=True,

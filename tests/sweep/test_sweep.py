@@ -22,7 +22,7 @@ from coworld.sweep.jobs import Job
 from coworld.sweep.progress import ProgressView
 from coworld.sweep.runner import Execution, Plan, _run_ray, _Tracker, run_sweep
 
-CLI = [sys.executable, "-c", "from coworld.cli import main; main()"]
+CLI = [sys.executable, "-c", "from coworld.cli import run; run()"]
 GRID = """
 pairs = ["toy_reach:toy_reach_shifted"]
 algos = {algos}

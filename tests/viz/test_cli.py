@@ -17,7 +17,7 @@ from coworld.data import open_dataset
 
 from .conftest import SOURCE, TARGET, contains, make_run
 
-COWORLD = [sys.executable, "-c", "from coworld.cli import main; main()"]
+COWORLD = [sys.executable, "-c", "from coworld.cli import run; run()"]
 
 
 @pytest.fixture(scope="module")
