@@ -251,14 +251,22 @@ _PEER_TIMING = (
 """The end of the drivers of dreamerv3-torch and the authors' release: ``wm``, ``behavior``, ``data``, ``run`` and
 ``reference`` set by its start."""
 
+_PEER_HEAD = textwrap.dedent(
+    """
+    import json, pathlib, sys, time, types
+    reference, settings = sys.argv[1], json.loads(sys.argv[2])  # the peer's checkout, what to time and how
+    sys.path.insert(0, reference)
+    """
+)
+"""The start of the drivers of dreamerv3-torch and r2dreamer."""
+
 DREAMERV3_DRIVER = (
-    textwrap.dedent(
+    _PEER_HEAD
+    + textwrap.dedent(
         """
     # Written by coworld's benchmarks/train_throughput.py: times NM512/dreamerv3-torch's update (world model, then
     # behaviour in imagination, as its Dreamer._train) on a random batch; prints JSON like our --worker.
-    import argparse, json, pathlib, sys, time, types
-    reference, settings = sys.argv[1], json.loads(sys.argv[2])
-    sys.path.insert(0, reference)
+    import argparse
     import numpy as np, ruamel.yaml, torch
     import models, tools
     run = settings.pop("run")
@@ -345,14 +353,12 @@ AUTHORS_DRIVER = (
 
 
 R2DREAMER_DRIVER = (
-    textwrap.dedent(
+    _PEER_HEAD
+    + textwrap.dedent(
         """
     # Written by coworld's benchmarks/train_throughput.py: times NM512/r2dreamer's update (its Dreamer.update: one
     # backward through world model, imagination losses and replay value, then its optimiser step) on a random batch
     # at the sizes given; prints JSON like our --worker.
-    import json, pathlib, sys, time, types
-    reference, settings = sys.argv[1], json.loads(sys.argv[2])
-    sys.path.insert(0, reference)
     import numpy as np, torch
     from hydra import compose, initialize_config_dir
     from tensordict import TensorDict
