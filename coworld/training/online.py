@@ -181,6 +181,8 @@ class OnlineTrainer:
         self.background = config.train.background_updates
         """Acting beside learning (see the module docstring)."""
         self._updates = Updates(agent.train, in_thread=self.background)
+        self._awaited: dict[str, float] = {}
+        """Metrics of the update that evaluation or a checkpoint waited for, for the run loop's next log."""
         self._actor: Any = None
         """What acts: the agent itself, or its policy copy when updates run beside acting."""
         self.act_rng = torch.Generator(device=getattr(agent, "device", "cpu")).manual_seed(
@@ -211,7 +213,7 @@ class OnlineTrainer:
         return state
 
     def save(self) -> None:
-        self._finish_update()
+        self._awaited.update(self._finish_update())
         state = {
             "kind": CHECKPOINT_KIND,
             "task": self.task,
@@ -313,6 +315,7 @@ class OnlineTrainer:
                     self.steps += 1
                     bar.update(1)
                 self._obs = obs
+                metrics.update(self._take_awaited())  # older than what _train_due returns
                 metrics.update(self._train_due())
                 if self.steps - last_log >= cfg.log_every and metrics:
                     # Rates over this log window, evaluation and checkpoint time included.
@@ -334,6 +337,7 @@ class OnlineTrainer:
                 if should_pause is not None and should_pause(self):
                     reason = "paused"
                     break
+            metrics.update(self._take_awaited())
             metrics.update(self._finish_update())
         finally:
             bar.close()
@@ -446,8 +450,13 @@ class OnlineTrainer:
             self._actor.sync()
         return {f"{self.prefix}{k}": v for k, v in result.items()}
 
+    def _take_awaited(self) -> dict[str, float]:
+        """The metrics :attr:`_awaited` holds, which it then forgets."""
+        awaited, self._awaited = self._awaited, {}
+        return awaited
+
     def _evaluate(self) -> None:
-        self._finish_update()
+        self._awaited.update(self._finish_update())
         cfg = self.config.train
         result, _ = evaluate(
             self.agent,

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import threading
 from pathlib import Path
 from typing import Any
@@ -222,3 +223,27 @@ def test_updates_beside_acting_run_while_the_agent_steps_at_the_same_ratio(tmp_p
     assert agent.threads == {"coworld-update"}  # never on the acting thread
     assert agent.trained == loop.updates == loop.updates_due(loop.steps) == 1 + 150 // 5  # each ended, at the ratio
     assert all(agent.overlapped[:-1])  # the agent acted during every update but the last, which the run's end awaits
+
+
+class CountingProbe(ProbeAgent):
+    """Its update's metric is the number of updates made so far."""
+
+    def train(self, batch: dict[str, np.ndarray]) -> dict[str, float]:
+        super().train(batch)
+        return {"probe/updates": float(self.trained)}
+
+
+def test_beside_acting_the_update_a_checkpoint_waits_for_is_logged(tmp_path: Path) -> None:
+    agent = CountingProbe(2)
+    overrides = ["train.background_updates=true", "train.prefill=50", "train.pretrain_updates=0", "train.train_every=5"]
+    overrides += ["train.checkpoint_every=50", f"train.log_every={NEVER}"]  # one record, at the end of the run
+    with open_writer(tmp_path / "d.h5") as writer, Logger(tmp_path, outputs=("jsonl",)) as logger:
+        loop = trainer(tmp_path, agent, overrides, writer, logger)
+        try:
+            loop.run(max_steps=200, progress=False, cut_episodes=False)  # the last update starts at the last step,
+        finally:  # which ends an episode: the checkpoint there waits for it
+            loop.close()
+    records = [json.loads(line) for line in (tmp_path / "metrics.jsonl").read_text().splitlines()]
+    logged = [record["probe/updates"] for record in records if "probe/updates" in record]
+    assert loop.updates == 1 + 150 // 5
+    assert logged == [loop.updates]  # the last update's metrics, not the one's before it
