@@ -181,8 +181,8 @@ class OnlineTrainer:
         self.background = config.train.background_updates
         """Acting beside learning (see the module docstring)."""
         self._updates = Updates(agent.train, in_thread=self.background)
-        self._awaited: dict[str, float] = {}
-        """Metrics of the update that evaluation or a checkpoint waited for, for the run loop's next log."""
+        self._unlogged: dict[str, float] = {}
+        """Metrics of the last update that ended (whoever waited for it), for the run loop's next log."""
         self._actor: Any = None
         """What acts: the agent itself, or its policy copy when updates run beside acting."""
         self.act_rng = torch.Generator(device=getattr(agent, "device", "cpu")).manual_seed(
@@ -213,7 +213,7 @@ class OnlineTrainer:
         return state
 
     def save(self) -> None:
-        self._awaited.update(self._finish_update())
+        self._finish_update()
         state = {
             "kind": CHECKPOINT_KIND,
             "task": self.task,
@@ -315,8 +315,8 @@ class OnlineTrainer:
                     self.steps += 1
                     bar.update(1)
                 self._obs = obs
-                metrics.update(self._take_awaited())  # older than what _train_due returns
-                metrics.update(self._train_due())
+                self._train_due()
+                metrics.update(self._take_unlogged())
                 if self.steps - last_log >= cfg.log_every and metrics:
                     # Rates over this log window, evaluation and checkpoint time included.
                     metrics[f"{self.prefix}perf/updates_per_s"] = update_rate(self.updates)
@@ -337,8 +337,8 @@ class OnlineTrainer:
                 if should_pause is not None and should_pause(self):
                     reason = "paused"
                     break
-            metrics.update(self._take_awaited())
-            metrics.update(self._finish_update())
+            self._finish_update()
+            metrics.update(self._take_unlogged())
         finally:
             bar.close()
             if self._updates.pending:  # stopped by an error or a signal: let the running update end, briefly
@@ -426,37 +426,36 @@ class OnlineTrainer:
         if missed > 0:
             self._skipped_updates += missed
 
-    def _train_due(self) -> dict[str, float]:
-        """Make the updates due by now, each on a batch of the replay as it is now, after the one before ends;
-        returns the metrics of the last update that ended. Beside learning the last one is left running."""
+    def _train_due(self) -> None:
+        """Make the updates due by now, each on a batch of the replay as it is now, after the one before ends.
+        Beside learning the last one is left running."""
         cfg = self.config.train
-        metrics: dict[str, float] = {}
         if self.steps < cfg.prefill or not self.replay.episodes:
-            return metrics
+            return
         while self.updates < self.updates_due(self.steps) - self._skipped_updates:
-            metrics = self._finish_update() or metrics
+            self._finish_update()
             self._updates.start(self.replay.sample(cfg.batch_size, cfg.seq_len))
             self.updates += 1
             if not self.background:
-                metrics = self._finish_update()
-        return metrics
+                self._finish_update()
 
-    def _finish_update(self) -> dict[str, float]:
-        """Wait for the running update; the policy copy then takes its weights. Returns its metrics ({} if none)."""
+    def _finish_update(self) -> None:
+        """Wait for the running update, if any; the policy copy then takes its weights, and its metrics wait in
+        :attr:`_unlogged` for the run loop's log."""
         result = self._updates.wait()
         if result is None:
-            return {}
+            return
         if self._actor is not None and self._actor is not self.agent:
             self._actor.sync()
-        return {f"{self.prefix}{k}": v for k, v in result.items()}
+        self._unlogged = {f"{self.prefix}{k}": v for k, v in result.items()}
 
-    def _take_awaited(self) -> dict[str, float]:
-        """The metrics :attr:`_awaited` holds, which it then forgets."""
-        awaited, self._awaited = self._awaited, {}
-        return awaited
+    def _take_unlogged(self) -> dict[str, float]:
+        """The metrics :attr:`_unlogged` holds, which it then forgets."""
+        unlogged, self._unlogged = self._unlogged, {}
+        return unlogged
 
     def _evaluate(self) -> None:
-        self._awaited.update(self._finish_update())
+        self._finish_update()
         cfg = self.config.train
         result, _ = evaluate(
             self.agent,

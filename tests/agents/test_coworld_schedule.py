@@ -70,9 +70,8 @@ def test_a_run_killed_inside_a_source_phase_resumes_without_a_burst_of_updates(
 
     def counting(self):
         before = self.updates
-        metrics = original_due(self)
+        original_due(self)
         updates_per_call.append(self.updates - before)
-        return metrics
 
     monkeypatch.setattr(OnlineTrainer, "_train_due", counting)
     summary = run_job(job, progress=False)
