@@ -402,26 +402,27 @@ R2DREAMER_DRIVER = (
 
 
 def r2dreamer_settings(config: Config, rep_loss: str) -> dict[str, str]:
-    """r2dreamer's Hydra overrides at our tiny preset's widths and batch (raises on other sizes): the same
-    encoder and decoder channels (8, 16, 32, 64), deterministic and hidden 64, 8 x 8 latents, units 64,
-    horizon 10; its own layers otherwise (5 x 5 stride-1 convolutions with max-pooling, upsampling in the
-    decoder, block-diagonal GRU of 8 blocks), eager."""
+    """r2dreamer's Hydra overrides at our widths and batch (at the tiny preset's sizes only, as
+    :func:`dreamerv3_settings`): the same encoder and decoder channels (``cnn_depth`` x 1, 2, 4, 8), deterministic
+    and hidden sizes, latents, units and horizon; its own layers otherwise (5 x 5 stride-1 convolutions with
+    max-pooling, upsampling in the decoder, block-diagonal GRU of 8 blocks), eager."""
     dreamerv3_settings(config)  # the same size check
+    wm, ac = config.world_model, config.actor_critic
     return {
         "device": "cpu",
         "batch_size": str(config.train.batch_size),
         "batch_length": str(config.train.seq_len),
         "model.compile": "False",
         "model.rep_loss": rep_loss,
-        "model.depth": "8",
+        "model.depth": str(wm.cnn_depth),
         "model.encoder.cnn.mults": "[1,2,4,8]",
         "model.decoder.cnn.mults": "[1,2,4,8]",
-        "model.deter": "64",
-        "model.hidden": "64",
-        "model.rssm.stoch": "8",
-        "model.discrete": "8",
-        "model.units": "64",
-        "model.imag_horizon": "10",
+        "model.deter": str(wm.deter),
+        "model.hidden": str(wm.hidden),
+        "model.rssm.stoch": str(wm.stoch),
+        "model.discrete": str(wm.classes),
+        "model.units": str(ac.units),
+        "model.imag_horizon": str(ac.horizon),
     }
 
 
@@ -486,7 +487,8 @@ def interleave(args: argparse.Namespace) -> None:
                 command = peers[label]
             else:
                 env = {**os.environ, "PYTHONPATH": str(tree), **(tcmalloc if malloc == "tcmalloc" else {})}
-                command = [sys.executable, __file__, "--worker", *common] + (["--allocator"] if malloc else [])
+                tuned = ["--allocator"] if malloc == "malloc" else []  # glibc tuned in the worker
+                command = [sys.executable, __file__, "--worker", *common, *tuned]
             stdout = subprocess.run(command, env=env, cwd=tree, capture_output=True, check=True, text=True).stdout
             result = json.loads(stdout.strip().splitlines()[-1])  # the peer prints its model's shapes first
             assert Path(result.pop("coworld")) == tree, "the worker imported another checkout"
