@@ -22,6 +22,7 @@ from torch import Tensor
 from coworld.config import Config
 from coworld.errors import ConfigError
 from coworld.models.actor_critic import ActorCritic, ValueRegulariser, flatten_states
+from coworld.models.distributions import exponential_noise
 from coworld.models.networks import frozen_parameters
 from coworld.models.rssm import State
 from coworld.models.world_model import WorldModel
@@ -145,7 +146,7 @@ class DreamerV2:
         rssm = self.world_model.rssm
         race = None  # the latent draws' noise, drawn inside obs_step from the default generator
         if generator is not None:
-            race = torch.empty(2, n, rssm.stoch, rssm.classes, device=self.device).exponential_(generator=generator)
+            race = exponential_noise((2, n, rssm.stoch, rssm.classes), self.device, generator)
         with self._autocast():
             embed = self.world_model.encode(image)
             latent, _ = rssm.obs_step(latent, action, embed, first, noise=race)
@@ -361,8 +362,9 @@ class PolicyCopy:
 def _optimizer(params: Any, *, lr: float, eps: float, decay: float) -> torch.optim.AdamW:
     """Adam with DreamerV2's weight decay: every step first scales each weight by ``1 - decay``, independent of
     the learning rate. AdamW scales by ``1 - lr * weight_decay`` before its Adam step, so ``weight_decay =
-    decay / lr`` is exactly that step."""
-    return torch.optim.AdamW(params, lr=lr, eps=eps, weight_decay=decay / lr)
+    decay / lr`` is exactly that step. PyTorch's fused kernel (CPU and CUDA) takes the same step in one pass over
+    each tensor."""
+    return torch.optim.AdamW(params, lr=lr, eps=eps, weight_decay=decay / lr, fused=True)
 
 
 def _to_floats(metrics: Mapping[str, Tensor]) -> dict[str, float]:

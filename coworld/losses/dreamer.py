@@ -28,14 +28,15 @@ __all__ = [
 
 class _HalfSquaredError(torch.autograd.Function):
     """``0.5 * sum((pred - target)^2)`` over the last three dimensions, with the gradient ``pred - target`` kept
-    from the forward pass: one pass each way, in the inputs' memory order. (``F.mse_loss``'s backward first
+    from the forward pass: in the inputs' memory order, the sum of squares as the square of a vector norm (one
+    reading pass, where squaring then summing writes and reads a temporary). (``F.mse_loss``'s backward first
     zero-fills a contiguous tensor, which the channels-last convolution before it then copies back.)"""
 
     @staticmethod
     def forward(ctx: Any, pred: Tensor, target: Tensor) -> Tensor:
         diff = pred - target
         ctx.save_for_backward(diff)
-        return 0.5 * (diff * diff).sum(dim=(-3, -2, -1))
+        return 0.5 * torch.linalg.vector_norm(diff, dim=(-3, -2, -1)).square()
 
     @staticmethod
     def backward(ctx: Any, grad: Tensor) -> tuple[Tensor | None, Tensor | None]:

@@ -86,7 +86,11 @@ class Actor(nn.Module):
 
     def forward(self, feat: Tensor) -> TruncatedNormal | TanhNormal | Normal:
         """``(..., F)`` -> action distribution, event ``(A,)``."""
-        mean, std = self.mlp(feat).float().chunk(2, dim=-1)
+        return self.distribution(self.mlp(feat))
+
+    def distribution(self, out: Tensor) -> TruncatedNormal | TanhNormal | Normal:
+        """The action distribution of the MLP's output ``(..., 2 A)``."""
+        mean, std = out.float().chunk(2, dim=-1)
         if self.dist == "trunc_normal":
             return TruncatedNormal(torch.tanh(mean), 2.0 * torch.sigmoid(std / 2.0) + self.min_std, -1.0, 1.0)
         if self.dist == "normal":
@@ -164,9 +168,11 @@ class ActorCritic(nn.Module):
         ``is_terminal (N,)``, if given, replaces the predicted continuation of the start states by the true one.
         Returns ``traj`` with ``'feat' (H+1, N, F)``, ``'action' (H+1, N, A)`` (zeros at 0), ``'state'``
         (states with batch ``(H+1, N)``), ``'reward' (H+1, N)`` (the reward head's mean),
-        ``'continuation' (H+1, N)`` (``gamma * P(continue)``) and ``'weight' (H+1, N)`` (detached
-        ``prod_{i<t} continuation_i``). With ``actor_grad='dynamics'`` actions are reparameterised samples and
-        everything downstream carries their gradient.
+        ``'continuation' (H+1, N)`` (``gamma * P(continue)``), ``'weight' (H+1, N)`` (detached
+        ``prod_{i<t} continuation_i``) and ``'actor_out' (H, N, 2 A)``, the actor's outputs in the states
+        ``0..H-1`` (:meth:`losses` reuses them rather than running the actor on those states again). With
+        ``actor_grad='dynamics'`` actions are reparameterised samples and everything downstream carries their
+        gradient.
         """
         horizon = self.config.horizon if horizon is None else horizon
         state = {key: value.detach() for key, value in start.items()}
@@ -175,8 +181,10 @@ class ActorCritic(nn.Module):
         states = [state]
         feats = [world_model.features(state)]
         actions = [torch.zeros(n, self.action_size, device=feats[0].device, dtype=feats[0].dtype)]
+        actor_outs: list[Tensor] = []
         for _ in range(horizon):
-            policy = self.actor(feats[-1].detach())
+            actor_outs.append(self.actor.mlp(feats[-1].detach()))
+            policy = self.actor.distribution(actor_outs[-1])
             action = policy.rsample() if reparam else policy.sample()
             if self.config.actor_absmax:
                 action = action * action.detach().abs().clamp_min(1.0).reciprocal()
@@ -202,6 +210,7 @@ class ActorCritic(nn.Module):
             "reward": reward,
             "continuation": continuation,
             "weight": weight.detach(),
+            "actor_out": torch.stack(actor_outs, dim=0),
         }
 
     def losses(
@@ -236,7 +245,11 @@ class ActorCritic(nn.Module):
                 bootstrap_value = self.critic(feat).mean
         target = lambda_return(reward[:-1], bootstrap_value[:-1], continuation[:-1], bootstrap_value[-1], cfg.lambda_)
 
-        policy = self.actor(feat[:-2].detach())
+        actor_out = traj.get("actor_out")  # the actor in states 0..H-1, if imagine ran it there
+        if isinstance(actor_out, Tensor):
+            policy = self.actor.distribution(actor_out[:-1])
+        else:
+            policy = self.actor(feat[:-2].detach())
         entropy = policy.entropy()
         scale = self.return_scale(target)
         if cfg.actor_grad == "dynamics":

@@ -20,7 +20,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from coworld.models.distributions import OneHotCategorical, log_softmax, softmax
+from coworld.models.distributions import OneHotCategorical, exponential_noise, log_softmax, softmax
 from coworld.models.networks import LayerNormGRUCell, glorot_init
 
 __all__ = ["RSSM", "State", "stack_states"]
@@ -101,7 +101,7 @@ class RSSM(nn.Module):
 
         Where ``is_first (N,)`` is true the previous state and action are zeroed first (a new episode starts).
         ``noise (2, N, S, K)``: the exponential noise of the prior's and the posterior's draws (see
-        :meth:`OneHotCategorical.rsample`), drawn here when None (one call of ``exponential_`` draws the same).
+        :meth:`OneHotCategorical.rsample`), drawn here when None (one call of :func:`exponential_noise` draws the same).
         """
         if is_first is not None:
             keep = (~is_first.bool()).to(prev_action.dtype)
@@ -120,26 +120,39 @@ class RSSM(nn.Module):
         resets the recurrent state; ``state`` (batch ``(B,)``) is the state before step 0 (zeros if None).
 
         The same computation as :meth:`obs_step` at every ``t``, with the work that does not depend on the
-        recurrent state done once for all steps: the embeddings' share of the posterior's first layer and the
-        exponential noise of every categorical draw (one ``exponential_`` call that fills the numbers the
-        ``T`` prior and ``T`` posterior draws would take one by one, in the same order).
+        recurrent state done once for all steps: the actions' share of the recurrent input layer and the
+        embeddings' share of the posterior's first layer; the prior's head and draw, which the next step does not
+        read (it continues from the posterior), on every step's ``h`` at once after the loop; and the exponential
+        noise of every categorical draw (one :func:`exponential_noise` call that fills the numbers the ``T`` prior
+        and ``T`` posterior draws would take one by one, in the same order).
         """
         batch, length = action.shape[:2]
         if state is None:
             state = self.initial(batch, action.device)
         keep = (~is_first.bool()).to(action.dtype).transpose(0, 1)[..., None]  # (T, B, 1)
         embed_share = self._embed_share(embed).transpose(0, 1)  # (T, B, H)
-        action = action.transpose(0, 1)
-        noise = torch.empty(length, 2, batch, self.stoch, self.classes, device=action.device).exponential_()
+        img_in, act = self.img_in
+        stoch_size = self.stoch * self.classes
+        # W [z, a] + b = W_z z + (W_a a + b); a zeroed where the episode starts, as obs_step zeroes it.
+        action_share = F.linear(action.transpose(0, 1) * keep, img_in.weight[:, stoch_size:], img_in.bias)
+        noise = exponential_noise((length, 2, batch, self.stoch, self.classes), action.device)
+        deter, stoch = state["deter"], state["stoch"]
+        deters: list[Tensor] = []
         posts: list[State] = []
-        priors: list[State] = []
         for t in range(length):
-            prev = {"deter": state["deter"] * keep[t], "stoch": state["stoch"] * keep[t, ..., None]}
-            prior = self.img_step(prev, action[t] * keep[t], noise=noise[t, 0])
-            state = self._posterior(prior, embed_share[t], True, noise[t, 1])
-            posts.append(state)
-            priors.append(prior)
-        return stack_states(posts), stack_states(priors)
+            stoch = (stoch * keep[t, ..., None]).reshape(batch, stoch_size)
+            x = act(F.linear(stoch.to(action_share.dtype), img_in.weight[:, :stoch_size]) + action_share[t])
+            deter = self.cell(x, deter * keep[t])
+            post = self._posterior({"deter": deter}, embed_share[t], True, noise[t, 1])
+            stoch = post["stoch"]
+            deters.append(deter)
+            posts.append(post)
+        prior_deter = torch.stack(deters).reshape(length * batch, -1)  # (T B, D)
+        logits = self._logits(self.img_out(prior_deter))
+        prior_stoch = self._sample(logits, True, noise[:, 0].reshape(length * batch, self.stoch, self.classes))
+        prior = {"deter": prior_deter, "logits": logits, "stoch": prior_stoch}
+        prior = {key: value.reshape(length, batch, *value.shape[1:]).transpose(0, 1) for key, value in prior.items()}
+        return stack_states(posts), prior
 
     def _embed_share(self, embed: Tensor) -> Tensor:
         """The embedding's part ``W_e e`` of the posterior's first layer ``W [h, e] + b``: ``(..., E) -> (..., H)``."""
@@ -165,7 +178,7 @@ class RSSM(nn.Module):
 
     def _sample(self, logits: Tensor, sample: bool, noise: Tensor | None = None) -> Tensor:
         """Straight-through one-hot sample (``sample``, with ``noise`` if given) or the one-hot mode, ``(N, S, K)``."""
-        dist = OneHotCategorical(logits)
+        dist = OneHotCategorical(logits, normalised=True)
         return dist.rsample(noise) if sample else dist.mode
 
 

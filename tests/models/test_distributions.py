@@ -15,6 +15,7 @@ from coworld.models.distributions import (
     TruncatedNormal,
     UnitGaussian,
     categorical_kl,
+    exponential_noise,
     log_softmax,
     softmax,
 )
@@ -31,6 +32,18 @@ def test_straight_through_sample_is_one_hot_with_probability_gradient() -> None:
     (grad_sample,) = torch.autograd.grad((weights * sample).sum(), logits)
     (grad_probs,) = torch.autograd.grad((weights * torch.softmax(logits, -1)).sum(), logits)
     torch.testing.assert_close(grad_sample, grad_probs)
+
+
+def test_exponential_noise_draws_what_exponential_draws() -> None:
+    shape = (3, 1000, 7)
+    want = torch.empty(shape).exponential_(generator=torch.Generator().manual_seed(5))
+    got = exponential_noise(shape, "cpu", torch.Generator().manual_seed(5))
+    assert got.dtype == torch.float32 and got.shape == shape
+    assert torch.equal(got, want)
+    torch.manual_seed(6)
+    want = torch.empty(shape).exponential_()
+    torch.manual_seed(6)
+    assert torch.equal(exponential_noise(shape), want)  # the default generator, on the default device
 
 
 def test_one_hot_samples_follow_the_probabilities() -> None:
