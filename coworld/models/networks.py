@@ -133,17 +133,20 @@ def conv_transpose_stride2(x: Tensor, weight: Tensor, bias: Tensor | None) -> Te
 
     :func:`stride2_phases` computes the four output phases in one convolution and :func:`depth_to_space`
     interleaves them (PyTorch's CPU transposed convolution scatters columns instead, several times slower at
-    DreamerV2's sizes). A 1 x 1 input (the decoder's first layer) is one matrix product. The result equals the
-    transposed convolution up to float rounding (summation order), gradients included.
+    DreamerV2's sizes). A 1 x 1 input (the decoder's first layer) is one matrix product, whose result is channels
+    last in memory. The result equals the transposed convolution up to float rounding (summation order), gradients
+    included.
 
     Shapes: ``x (N, C_in, H, W)``, ``weight (C_in, C_out, K, K)`` (``nn.ConvTranspose2d``'s layout),
     ``bias (C_out,)``; returns ``(N, C_out, 2 (H - 1) + K, 2 (W - 1) + K)``.
     """
     c_in, c_out, kernel, _ = weight.shape
     n, _, height, width = x.shape
-    if height == 1 and width == 1:
-        out = (x.reshape(n, c_in) @ weight.reshape(c_in, -1)).reshape(n, c_out, kernel, kernel)
-        return out if bias is None else out + bias[:, None, None]
+    if height == 1 and width == 1:  # one matrix product, its output channels last (as the next layer reads it)
+        taps = weight.permute(0, 2, 3, 1).reshape(c_in, kernel * kernel * c_out)
+        flat = x.reshape(n, c_in)
+        out = flat @ taps if bias is None else torch.addmm(bias.repeat(kernel * kernel), flat, taps)
+        return out.reshape(n, kernel, kernel, c_out).permute(0, 3, 1, 2)
     return _ConvTransposeStride2.apply(x, weight, bias)
 
 
