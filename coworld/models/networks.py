@@ -30,6 +30,7 @@ MLP_ACTS: dict[str, type[nn.Module]] = {"elu": nn.ELU, "silu": nn.SiLU}
 
 __all__ = [
     "ConvDecoder",
+    "ConvELU",
     "ConvEncoder",
     "LayerNormGRUCell",
     "MLP",
@@ -80,6 +81,32 @@ def frozen_parameters(module: nn.Module) -> Iterator[None]:
     finally:
         for p in params:
             p.requires_grad_(True)
+
+
+class _EluKeepingOutput(torch.autograd.Function):
+    """``F.elu(x)`` whose backward reads its output (``grad * (y + 1)`` where ``x <= 0``) rather than its input
+    (which PyTorch's keeps, to take ``exp(x)`` again): no second exponential, and the input, a convolution's
+    output that nothing else keeps, is freed as soon as the activation has run."""
+
+    @staticmethod
+    def forward(ctx: Any, x: Tensor) -> Tensor:
+        out = F.elu(x)
+        ctx.save_for_backward(out)
+        return out
+
+    @staticmethod
+    def backward(ctx: Any, grad: Tensor) -> Tensor:
+        (out,) = ctx.saved_tensors
+        return torch.ops.aten.elu_backward(grad, 1.0, 1, 1, True, out)
+
+
+class ConvELU(nn.Module):
+    """``nn.ELU()`` for the conv stacks' large activations: the same function and gradient (up to float rounding),
+    its backward from the output (:class:`_EluKeepingOutput`). The small activations of the MLPs keep ``nn.ELU``,
+    whose call costs less."""
+
+    def forward(self, x: Tensor) -> Tensor:
+        return _EluKeepingOutput.apply(x)
 
 
 def space_to_depth(x: Tensor) -> Tensor:
@@ -245,7 +272,7 @@ class ConvEncoder(nn.Module):
         in_channels = channels
         for i in range(4):
             out_channels = depth * 2**i
-            layers += [nn.Conv2d(in_channels, out_channels, kernel_size=4, stride=2), nn.ELU()]
+            layers += [nn.Conv2d(in_channels, out_channels, kernel_size=4, stride=2), ConvELU()]
             in_channels = out_channels
         self.net = nn.Sequential(*layers)
         self.embed_size = in_channels * 2 * 2
@@ -294,7 +321,7 @@ class ConvDecoder(nn.Module):
             out_channels = channels if last else depth * 2 ** (len(kernels) - i - 2)
             layers.append(nn.ConvTranspose2d(in_channels, out_channels, kernel_size=kernel, stride=2))
             if not last:
-                layers.append(nn.ELU())
+                layers.append(ConvELU())
             in_channels = out_channels
         self.net = nn.Sequential(*layers)
         glorot_init(self)

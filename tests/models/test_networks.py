@@ -10,6 +10,7 @@ from coworld.errors import CoworldError
 from coworld.models.networks import (
     MLP,
     ConvDecoder,
+    ConvELU,
     ConvEncoder,
     LayerNormGRUCell,
     check_image_shape,
@@ -139,3 +140,13 @@ def test_conv2d_stride2_is_the_strided_convolution_with_its_gradients(size: int,
     grad = torch.randn_like(want)
     for a, c in zip(torch.autograd.grad(got, inputs, grad), torch.autograd.grad(want, inputs, grad), strict=True):
         torch.testing.assert_close(a, c)
+
+
+def test_conv_elu_is_the_elu_with_its_gradient() -> None:
+    x = torch.randn(3, 4, 5, 6, dtype=torch.float64).contiguous(memory_format=torch.channels_last) * 3
+    x.requires_grad_()
+    got, want = ConvELU()(x), torch.nn.functional.elu(x)
+    torch.testing.assert_close(got, want)
+    assert got.is_contiguous(memory_format=torch.channels_last)
+    grad = torch.randn_like(want)
+    torch.testing.assert_close(torch.autograd.grad(got, x, grad)[0], torch.autograd.grad(want, x, grad)[0])
