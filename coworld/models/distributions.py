@@ -53,9 +53,15 @@ def exponential_noise(
     return uniform.neg_().log1p_().neg_().to(torch.float32)
 
 
+_SMALL = 2048
+"""Below this many numbers the transposed copy costs more than it saves: ``(16, 8, 8)``, the RSSM's posterior in a
+batch of 16 sequences, is faster plain, ``(64, 8, 8)`` transposed (benchmarks/RESULTS.md, issue 19)."""
+
+
 def _transposed(x: Tensor) -> bool:
     """Whether :func:`softmax` and :func:`log_softmax` reduce ``x`` over a transposed copy."""
-    return x.device.type == "cpu" and x.ndim >= 2 and x.shape[-1] < _SHORT_LAST_DIM and x.shape[-2] > 1
+    short = x.ndim >= 2 and x.shape[-1] < _SHORT_LAST_DIM and x.shape[-2] > 1
+    return x.device.type == "cpu" and short and x.numel() >= _SMALL
 
 
 def softmax(x: Tensor) -> Tensor:

@@ -130,18 +130,19 @@ class RSSM(nn.Module):
         if state is None:
             state = self.initial(batch, action.device)
         keep = (~is_first.bool()).to(action.dtype).transpose(0, 1)[..., None]  # (T, B, 1)
-        embed_share = self._embed_share(embed).transpose(0, 1)  # (T, B, H)
+        embed_share = self._embed_share(embed).transpose(0, 1).contiguous()  # (T, B, H)
         img_in, act = self.img_in
         stoch_size = self.stoch * self.classes
         # W [z, a] + b = W_z z + (W_a a + b); a zeroed where the episode starts, as obs_step zeroes it.
         action_share = F.linear(action.transpose(0, 1) * keep, img_in.weight[:, stoch_size:], img_in.bias)
+        stoch_weight = img_in.weight[:, :stoch_size].t()
         noise = exponential_noise((length, 2, batch, self.stoch, self.classes), action.device)
         deter, stoch = state["deter"], state["stoch"]
         deters: list[Tensor] = []
         posts: list[State] = []
         for t in range(length):
             stoch = (stoch * keep[t, ..., None]).reshape(batch, stoch_size)
-            x = act(F.linear(stoch.to(action_share.dtype), img_in.weight[:, :stoch_size]) + action_share[t])
+            x = act(torch.addmm(action_share[t], stoch.to(action_share.dtype), stoch_weight))
             deter = self.cell(x, deter * keep[t])
             post = self._posterior({"deter": deter}, embed_share[t], True, noise[t, 1])
             stoch = post["stoch"]
@@ -155,14 +156,16 @@ class RSSM(nn.Module):
         return stack_states(posts), prior
 
     def _embed_share(self, embed: Tensor) -> Tensor:
-        """The embedding's part ``W_e e`` of the posterior's first layer ``W [h, e] + b``: ``(..., E) -> (..., H)``."""
+        """The embedding's part ``W_e e + b`` of the posterior's first layer ``W [h, e] + b``:
+        ``(..., E) -> (..., H)``."""
         first, *_ = self.obs_out
-        return F.linear(embed, first.weight[:, self.deter_size :])
+        return F.linear(embed, first.weight[:, self.deter_size :], first.bias)
 
     def _posterior(self, prior: State, embed_share: Tensor, sample: bool, noise: Tensor | None = None) -> State:
-        """The posterior next to ``prior``, given :meth:`_embed_share` of the observation's embedding."""
+        """The posterior next to ``prior`` ``(N, ...)``, given :meth:`_embed_share` ``(N, H)`` of the observation's
+        embedding."""
         first, *rest = self.obs_out  # Linear([h, e] -> hidden), ELU, Linear(hidden -> S * K)
-        hidden = F.linear(prior["deter"], first.weight[:, : self.deter_size], first.bias) + embed_share
+        hidden = torch.addmm(embed_share, prior["deter"], first.weight[:, : self.deter_size].t())
         for layer in rest:
             hidden = layer(hidden)
         logits = self._logits(hidden)

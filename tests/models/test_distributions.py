@@ -159,7 +159,7 @@ def test_twohot_mean_and_log_prob_known_answers() -> None:
     assert abs(float(TwoHotSymlog(logits).mean) - 30.0) < 1.0  # from 0
 
 
-@pytest.mark.parametrize("shape", [(5, 8, 8), (3, 4, 7, 3), (6, 4, 32), (9, 1, 8), (8,)])
+@pytest.mark.parametrize("shape", [(5, 8, 8), (64, 8, 8), (3, 4, 7, 3), (3, 50, 4, 6), (6, 4, 32), (9, 1, 8), (8,)])
 def test_softmax_helpers_are_torch_softmax_with_its_gradient(shape: tuple[int, ...]) -> None:
     """The (log-)softmax that short class dimensions take through a transposed copy (and every other shape
     straight) has torch's values and gradients."""
