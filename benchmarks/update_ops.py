@@ -1,0 +1,117 @@
+"""Single-op timings behind the DreamerV2 update's choices (issue 19): each row times our form against the plain
+one it replaces, forward and backward where both run, on one CPU thread.
+
+    python benchmarks/update_ops.py [--repeats 30]
+
+Rows:
+- ``exponential``: :func:`coworld.models.distributions.exponential_noise` against ``Tensor.exponential_`` for the
+  latents of an imagination step at the tiny preset (512 x 8 x 8 numbers; the same numbers, checked);
+- ``log_softmax``: the transposed (log-)softmax of :mod:`coworld.models.distributions` against the plain one at
+  the RSSM posterior's sizes in a batch of 16 sequences and of 64 and 512 states, forward and backward;
+- ``adamw``: the world model's AdamW step at the tiny preset, fused against PyTorch's default (``foreach``);
+- ``decoder layer 2`` / ``3``: :func:`coworld.models.networks.conv_transpose_stride2` forward and backward, its
+  backward PyTorch's own transposed-convolution backward against the phase convolution's autograd, at batch 512.
+
+Each cell is the median of ``--repeats`` timings (thread CPU time) after 3 warm-up calls.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+from collections.abc import Callable
+
+import torch
+
+from coworld.config import make_config
+from coworld.models.distributions import exponential_noise, log_softmax
+from coworld.models.networks import conv_transpose_stride2, depth_to_space, stride2_phases
+from coworld.models.world_model import WorldModel
+
+
+def median_us(fn: Callable[[], object], repeats: int) -> float:
+    """Median thread CPU time of ``fn()`` in microseconds, after 3 unmeasured calls."""
+    for _ in range(3):
+        fn()
+    times = []
+    for _ in range(repeats):
+        start = time.thread_time()
+        fn()
+        times.append(time.thread_time() - start)
+    return statistics.median(times) * 1e6
+
+
+def row(name: str, ours: float, plain: float) -> None:
+    print(f"{name:<44}{ours:>12.1f}{plain:>12.1f}{plain / ours:>10.2f}")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--repeats", type=int, default=30)
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    print(f"{'op':<44}{'ours us':>12}{'plain us':>12}{'speed-up':>10}")
+
+    shape = (512, 8, 8)
+    generator = torch.Generator()
+    assert torch.equal(
+        exponential_noise(shape, "cpu", generator.manual_seed(0)),
+        torch.empty(shape).exponential_(generator=generator.manual_seed(0)),
+    )
+    row(
+        "exponential, 512 x 8 x 8",
+        median_us(lambda: exponential_noise(shape, "cpu", generator), args.repeats),
+        median_us(lambda: torch.empty(shape).exponential_(generator=generator), args.repeats),
+    )
+
+    for rows in (16, 64, 512):
+        x = torch.randn(rows, 8, 8, requires_grad=True)
+        grad = torch.randn(rows, 8, 8)
+
+        def transposed(x: torch.Tensor = x, grad: torch.Tensor = grad) -> None:
+            out = torch.log_softmax(x.transpose(-1, -2).contiguous(), -2).transpose(-1, -2)
+            torch.autograd.grad(out, x, grad)
+
+        def plain(x: torch.Tensor = x, grad: torch.Tensor = grad) -> None:
+            torch.autograd.grad(torch.log_softmax(x, -1), x, grad)
+
+        label = "used" if log_softmax(x.detach()).stride() != torch.log_softmax(x.detach(), -1).stride() else "not used"
+        row(
+            f"log_softmax transposed ({label}), {rows} x 8 x 8",
+            median_us(transposed, args.repeats),
+            median_us(plain, args.repeats),
+        )
+
+    params = list(WorldModel(config=make_config("tiny").world_model, action_size=6).parameters())
+    for param in params:
+        param.grad = torch.randn_like(param)
+    fused = torch.optim.AdamW(params, lr=1e-4, eps=1e-5, weight_decay=0.01, fused=True)
+    default = torch.optim.AdamW(params, lr=1e-4, eps=1e-5, weight_decay=0.01)
+    row("AdamW step, world model (tiny)", median_us(fused.step, args.repeats), median_us(default.step, args.repeats))
+
+    for layer, (c_in, c_out, size, kernel) in (("2", (32, 16, 5, 5)), ("3", (16, 8, 13, 6))):
+        x = torch.randn(512, c_in, size, size).contiguous(memory_format=torch.channels_last).requires_grad_()
+        weight = torch.randn(c_in, c_out, kernel, kernel, requires_grad=True)
+        bias = torch.randn(c_out, requires_grad=True)
+        out_size = 2 * (size - 1) + kernel
+
+        def phases(x: torch.Tensor = x, w: torch.Tensor = weight, b: torch.Tensor = bias, n: int = out_size):
+            return depth_to_space(stride2_phases(x, w, b))[..., :n, :n]
+
+        grad = torch.randn_like(phases())
+        inputs = [x, weight, bias]
+
+        def ours(inputs: list[torch.Tensor] = inputs, grad: torch.Tensor = grad) -> None:
+            torch.autograd.grad(conv_transpose_stride2(*inputs), inputs, grad)
+
+        def theirs(inputs: list[torch.Tensor] = inputs, grad: torch.Tensor = grad) -> None:
+            torch.autograd.grad(phases(), inputs, grad)
+
+        row(
+            f"decoder layer {layer}, forward + backward", median_us(ours, args.repeats), median_us(theirs, args.repeats)
+        )
+
+
+if __name__ == "__main__":
+    main()
