@@ -193,28 +193,32 @@ class _ConvTransposeStride2(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx: Any, x: Tensor, weight: Tensor, bias: Tensor | None) -> Tensor:
-        out = _phases_interleaved(x, weight, bias)
-        # Under autocast the convolution ran in out.dtype; its backward does too.
-        ctx.save_for_backward(x.to(out.dtype), weight.to(out.dtype))
-        ctx.has_bias = bias is not None
-        return out
+        return _keep_for_backward(ctx, x, weight, bias, _phases_interleaved(x, weight, bias))
 
     @staticmethod
     def backward(ctx: Any, grad: Tensor) -> tuple[Tensor | None, Tensor | None, Tensor | None]:
         x, weight = ctx.saved_tensors
-        return torch.ops.aten.convolution_backward(
-            grad,
-            x,
-            weight,
-            [weight.shape[1]] if ctx.has_bias else None,
-            [2, 2],
-            [0, 0],
-            [1, 1],
-            True,
-            [0, 0],
-            1,
-            [ctx.needs_input_grad[0], ctx.needs_input_grad[1], ctx.has_bias and ctx.needs_input_grad[2]],
-        )
+        needs = ctx.needs_input_grad
+        return _stride2_backward(grad, x, weight, transposed=True, mask=(needs[0], needs[1], ctx.has_bias and needs[2]))
+
+
+def _keep_for_backward(ctx: Any, x: Tensor, weight: Tensor, bias: Tensor | None, out: Tensor) -> Tensor:
+    """Save ``x`` and ``weight`` for a stride-2 convolution's backward, in ``out``'s dtype (under autocast the
+    convolution ran in it, and its backward does too), and whether it has a bias; returns ``out``."""
+    ctx.save_for_backward(x.to(out.dtype), weight.to(out.dtype))
+    ctx.has_bias = bias is not None
+    return out
+
+
+def _stride2_backward(
+    grad: Tensor, x: Tensor, weight: Tensor, *, transposed: bool, mask: tuple[bool, bool, bool]
+) -> tuple[Tensor | None, Tensor | None, Tensor | None]:
+    """PyTorch's backward of the unpadded stride-2 (transposed) convolution of ``x`` by ``weight`` with output
+    gradient ``grad``: the input, weight and bias gradients that ``mask`` asks for (None for the others)."""
+    bias_sizes = [weight.shape[1 if transposed else 0]] if mask[2] else None
+    return torch.ops.aten.convolution_backward(
+        grad, x, weight, bias_sizes, [2, 2], [0, 0], [1, 1], transposed, [0, 0], 1, list(mask)
+    )
 
 
 class _Conv2dStride2(torch.autograd.Function):
@@ -224,11 +228,7 @@ class _Conv2dStride2(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx: Any, x: Tensor, weight: Tensor, bias: Tensor | None) -> Tensor:
-        out = F.conv2d(x, weight, bias, stride=2)
-        # Under autocast the convolution ran in out.dtype; its backward does too.
-        ctx.save_for_backward(x.to(out.dtype), weight.to(out.dtype))
-        ctx.has_bias = bias is not None
-        return out
+        return _keep_for_backward(ctx, x, weight, bias, F.conv2d(x, weight, bias, stride=2))
 
     @staticmethod
     def backward(ctx: Any, grad: Tensor) -> tuple[Tensor | None, Tensor | None, Tensor | None]:
@@ -241,19 +241,8 @@ class _Conv2dStride2(torch.autograd.Function):
                 grad_x = F.pad(grad_x, (0, extra[0], 0, extra[1]))
         grad_weight = grad_bias = None
         if ctx.needs_input_grad[1] or ctx.needs_input_grad[2]:
-            _, grad_weight, grad_bias = torch.ops.aten.convolution_backward(
-                grad,
-                x,
-                weight,
-                [weight.shape[0]] if ctx.has_bias else None,
-                [2, 2],
-                [0, 0],
-                [1, 1],
-                False,
-                [0, 0],
-                1,
-                [False, True, ctx.has_bias],
-            )
+            mask = (False, True, ctx.has_bias)
+            _, grad_weight, grad_bias = _stride2_backward(grad, x, weight, transposed=False, mask=mask)
         return grad_x, grad_weight, grad_bias
 
 
