@@ -84,9 +84,7 @@ class RSSM(nn.Module):
         when None."""
         stoch = prev_state["stoch"].reshape(prev_action.shape[0], -1)
         x = self.img_in(torch.cat([stoch, prev_action.to(stoch.dtype)], dim=-1))
-        deter = self.cell(x, prev_state["deter"])
-        logits = self._logits(self.img_out(deter))
-        return {"deter": deter, "logits": logits, "stoch": self._sample(logits, sample, noise)}
+        return self._prior(self.cell(x, prev_state["deter"]), sample, noise)
 
     def obs_step(
         self,
@@ -148,10 +146,8 @@ class RSSM(nn.Module):
             stoch = post["stoch"]
             deters.append(deter)
             posts.append(post)
-        prior_deter = torch.stack(deters).reshape(length * batch, -1)  # (T B, D)
-        logits = self._logits(self.img_out(prior_deter))
-        prior_stoch = self._sample(logits, True, noise[:, 0].reshape(length * batch, self.stoch, self.classes))
-        prior = {"deter": prior_deter, "logits": logits, "stoch": prior_stoch}
+        prior_noise = noise[:, 0].reshape(length * batch, self.stoch, self.classes)
+        prior = self._prior(torch.stack(deters).reshape(length * batch, -1), True, prior_noise)  # batch (T B,)
         prior = {key: value.reshape(length, batch, *value.shape[1:]).transpose(0, 1) for key, value in prior.items()}
         return stack_states(posts), prior
 
@@ -160,6 +156,11 @@ class RSSM(nn.Module):
         ``(..., E) -> (..., H)``."""
         first, *_ = self.obs_out
         return F.linear(embed, first.weight[:, self.deter_size :], first.bias)
+
+    def _prior(self, deter: Tensor, sample: bool, noise: Tensor | None = None) -> State:
+        """The prior state of the recurrent state ``deter (N, D)``: its head's logits and their draw."""
+        logits = self._logits(self.img_out(deter))
+        return {"deter": deter, "logits": logits, "stoch": self._sample(logits, sample, noise)}
 
     def _posterior(self, prior: State, embed_share: Tensor, sample: bool, noise: Tensor | None = None) -> State:
         """The posterior next to ``prior`` ``(N, ...)``, given :meth:`_embed_share` ``(N, H)`` of the observation's
