@@ -604,10 +604,11 @@ def main() -> None:
         if args.algo == "others":
             return
 
-    runs = [("default", {})]
+    sets = dict(item.split("=", 1) for item in args.set)
+    runs = [("default", sets)]
     if args.compare:
         runs = [
-            (f"{precision}-{mode}", {"precision": precision, "compile": mode == "compile"})
+            (f"{precision}-{mode}", {**sets, "precision": precision, "compile": mode == "compile"})
             for mode in ("eager", "compile")
             for precision in ("fp32", "bf16")
         ]
@@ -615,7 +616,7 @@ def main() -> None:
         measure(args.preset, args.device, overrides, label, args.warmup, args.updates, args.action_size)
         for label, overrides in runs
     ]
-    config = make_config(args.preset)
+    config = args_config(args)
     print(
         f"preset={args.preset} device={args.device} threads={args.threads} "
         f"batch={config.train.batch_size}x{config.train.seq_len} horizon={config.actor_critic.horizon}"
