@@ -233,17 +233,37 @@ class _Conv2dStride2(torch.autograd.Function):
     @staticmethod
     def backward(ctx: Any, grad: Tensor) -> tuple[Tensor | None, Tensor | None, Tensor | None]:
         x, weight = ctx.saved_tensors
-        grad_x = None
-        if ctx.needs_input_grad[0]:
-            grad_x = conv_transpose_stride2(grad, weight, None)
-            extra = x.shape[-1] - grad_x.shape[-1], x.shape[-2] - grad_x.shape[-2]
-            if any(extra):  # input rows and columns no output reads (an odd size) get no gradient
-                grad_x = F.pad(grad_x, (0, extra[0], 0, extra[1]))
+        grad_x = _transposed_input_grad(grad, weight, x.shape[-2:]) if ctx.needs_input_grad[0] else None
         grad_weight = grad_bias = None
         if ctx.needs_input_grad[1] or ctx.needs_input_grad[2]:
             mask = (False, True, ctx.has_bias)
             _, grad_weight, grad_bias = _stride2_backward(grad, x, weight, transposed=False, mask=mask)
         return grad_x, grad_weight, grad_bias
+
+
+def _transposed_input_grad(grad: Tensor, weight: Tensor, size: torch.Size) -> Tensor:
+    """The input gradient ``(N, C_in, *size)`` of an unpadded stride-2 convolution by ``weight`` from its output
+    gradient ``grad``: :func:`conv_transpose_stride2` of ``grad``, zero in the input rows and columns no output
+    reads (an odd input size; the encoder's second layer reads 30 of its 31).
+
+    With an even kernel the transposed convolution's size is even and its phases interleave straight into the
+    result, padding included: one copy, where interleaving and then padding take two and a zero-fill (about 2 ms of
+    an update at the tiny preset's sizes). Called from a backward, so it records no graph.
+    """
+    kernel = weight.shape[-1]
+    if kernel % 2 or min(grad.shape[-2:]) < 2:  # odd sizes, or a 1 x 1 input (a matrix product): pad afterwards
+        full = conv_transpose_stride2(grad, weight, None)
+        return F.pad(full, (0, size[1] - full.shape[-1], 0, size[0] - full.shape[-2]))
+    phases = stride2_phases(grad, weight, None)  # (N, 4 C, rows, cols): phase (p, s) of channel c is (p, s, c)
+    n, _, rows, cols = phases.shape
+    channels = weight.shape[1]
+    height, width = 2 * (grad.shape[-2] - 1) + kernel, 2 * (grad.shape[-1] - 1) + kernel  # = 2 rows, 2 cols
+    out = phases.new_empty(n, size[0], size[1], channels)  # channels last
+    source = phases.permute(0, 2, 3, 1).reshape(n, rows, cols, 2, 2, channels).transpose(2, 3)  # (n, q, p, r, s, c)
+    out[:, :height, :width].view(n, rows, 2, cols, 2, channels).copy_(source)
+    out[:, height:].zero_()
+    out[:, :height, width:].zero_()
+    return out.permute(0, 3, 1, 2)
 
 
 def conv2d_stride2(x: Tensor, weight: Tensor, bias: Tensor | None) -> Tensor:

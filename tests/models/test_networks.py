@@ -128,7 +128,7 @@ def test_encoder_from_phases_and_decoder_phases_match_the_image_paths(tiny: Conf
     torch.testing.assert_close(out, space_to_depth(decoder(feat).movedim(-3, -1)).movedim(-1, -3))
 
 
-@pytest.mark.parametrize(("size", "bias"), [(31, True), (14, True), (6, False), (9, True)])
+@pytest.mark.parametrize(("size", "bias"), [(31, True), (14, True), (6, False), (9, True), (5, False)])
 def test_conv2d_stride2_is_the_strided_convolution_with_its_gradients(size: int, bias: bool) -> None:
     x = torch.randn(2, 3, size, size + 1, dtype=torch.float64).contiguous(memory_format=torch.channels_last)
     x.requires_grad_()
