@@ -35,7 +35,7 @@ _LOG_SQRT_2PI = 0.5 * math.log(2.0 * math.pi)
 
 _SHORT_LAST_DIM = 16
 """float32 lanes of an AVX-512 register: PyTorch's CPU (log-)softmax along a last dimension shorter than this is
-about 3x slower than the same reduction along another dimension (benchmarks/RESULTS.md, issue 19)."""
+several times slower than the same reduction along the first dimension (benchmarks/update_ops.py)."""
 
 
 def exponential_noise(
@@ -53,29 +53,30 @@ def exponential_noise(
     return uniform.neg_().log1p_().neg_().to(torch.float32)
 
 
-_SMALL = 2048
-"""Below this many numbers the transposed copy costs more than it saves: ``(16, 8, 8)``, the RSSM's posterior in a
-batch of 16 sequences, is faster plain, ``(64, 8, 8)`` transposed (benchmarks/RESULTS.md, issue 19)."""
+_SMALL = 1024
+"""Below this many numbers the copy costs more than it saves: ``(8, 8, 8)`` is faster plain, ``(16, 8, 8)``, the
+RSSM's posterior in a batch of 16 sequences, through the copy (benchmarks/update_ops.py)."""
 
 
-def _transposed(x: Tensor) -> bool:
-    """Whether :func:`softmax` and :func:`log_softmax` reduce ``x`` over a transposed copy."""
+def _classes_first(x: Tensor) -> bool:
+    """Whether :func:`softmax` and :func:`log_softmax` reduce ``x`` over a copy with its classes first."""
     short = x.ndim >= 2 and x.shape[-1] < _SHORT_LAST_DIM and x.shape[-2] > 1
     return x.device.type == "cpu" and short and x.numel() >= _SMALL
 
 
 def softmax(x: Tensor) -> Tensor:
     """``torch.softmax(x, -1)``; on a CPU with fewer than 16 classes (DreamerV2's 8 x 8 latents of the small
-    presets), computed along dimension -2 of a transposed copy and returned as a transposed view."""
-    if _transposed(x):
-        return torch.softmax(x.transpose(-1, -2).contiguous(), -2).transpose(-1, -2)
+    presets), computed along dimension 0 of a copy with the classes first, where the reduction runs across whole
+    vector registers of the other dimensions, and returned as a view with the classes last again."""
+    if _classes_first(x):
+        return torch.softmax(x.movedim(-1, 0).contiguous(), 0).movedim(0, -1)
     return torch.softmax(x, -1)
 
 
 def log_softmax(x: Tensor) -> Tensor:
     """``torch.log_softmax(x, -1)``, computed as :func:`softmax` is."""
-    if _transposed(x):
-        return torch.log_softmax(x.transpose(-1, -2).contiguous(), -2).transpose(-1, -2)
+    if _classes_first(x):
+        return torch.log_softmax(x.movedim(-1, 0).contiguous(), 0).movedim(0, -1)
     return torch.log_softmax(x, -1)
 
 

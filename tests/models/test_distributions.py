@@ -161,8 +161,8 @@ def test_twohot_mean_and_log_prob_known_answers() -> None:
 
 @pytest.mark.parametrize("shape", [(5, 8, 8), (64, 8, 8), (3, 4, 7, 3), (3, 50, 4, 6), (6, 4, 32), (9, 1, 8), (8,)])
 def test_softmax_helpers_are_torch_softmax_with_its_gradient(shape: tuple[int, ...]) -> None:
-    """The (log-)softmax that short class dimensions take through a transposed copy (and every other shape
-    straight) has torch's values and gradients."""
+    """The (log-)softmax that short class dimensions take through a copy with the classes first (and every other
+    shape straight) has torch's values and gradients."""
     x = torch.randn(*shape, dtype=torch.float64, requires_grad=True)
     grad = torch.randn(*shape, dtype=torch.float64)
     for mine, theirs in ((softmax, torch.softmax), (log_softmax, torch.log_softmax)):
