@@ -25,12 +25,10 @@ from torch import Tensor, nn
 
 from coworld.errors import ConfigError, CoworldError
 
-MLP_ACTS: dict[str, type[nn.Module]] = {"elu": nn.ELU, "silu": nn.SiLU}
-"""Hidden-layer activations of :class:`MLP` by name."""
-
 __all__ = [
     "ConvDecoder",
     "ConvELU",
+    "ELU",
     "ConvEncoder",
     "LayerNormGRUCell",
     "MLP",
@@ -83,14 +81,31 @@ def frozen_parameters(module: nn.Module) -> Iterator[None]:
             p.requires_grad_(True)
 
 
+_ELU_BY_EXP_MIN = 16384
+"""From this many numbers up :class:`ELU` runs as :class:`_EluKeepingOutput`; below, a plain ``F.elu`` call costs
+less than the custom function's own overhead (about 25 us forward and backward; benchmarks/update_ops.py)."""
+
+
+def _elu_by_exp(x: Tensor) -> Tensor:
+    """``F.elu(x)`` as ``max(x, exp(min(x, 0)) - 1)``: four passes of vectorised ``exp``, subtraction and
+    comparisons, which on a CPU take 0.6-0.8 of the time of PyTorch's one pass of ``expm1``. The values differ by at
+    most one rounding of 1.0 (6e-8 in float32) where ``x`` is negative and near 0."""
+    out = torch.clamp_max(x, 0.0)
+    out.exp_()
+    out.sub_(1.0)
+    return torch.maximum(x, out, out=out)  # exp(x) - 1 >= x where x <= 0; 0 < x where x > 0
+
+
 class _EluKeepingOutput(torch.autograd.Function):
     """``F.elu(x)`` whose backward reads its output (``grad * (y + 1)`` where ``x <= 0``) rather than its input
-    (which PyTorch's keeps, to take ``exp(x)`` again): no second exponential, and the input, a convolution's
-    output that nothing else keeps, is freed as soon as the activation has run."""
+    (which PyTorch's keeps, to take ``exp(x)`` again): no second exponential, and the input, a layer's output that
+    nothing else keeps, is freed as soon as the activation has run. On a CPU in float32 or float64 the forward is
+    :func:`_elu_by_exp`."""
 
     @staticmethod
     def forward(ctx: Any, x: Tensor) -> Tensor:
-        out = F.elu(x)
+        by_exp = x.device.type == "cpu" and x.dtype in (torch.float32, torch.float64)
+        out = _elu_by_exp(x) if by_exp else F.elu(x)
         ctx.save_for_backward(out)
         return out
 
@@ -101,12 +116,25 @@ class _EluKeepingOutput(torch.autograd.Function):
 
 
 class ConvELU(nn.Module):
-    """``nn.ELU()`` for the conv stacks' large activations: the same function and gradient (up to float rounding),
-    its backward from the output (:class:`_EluKeepingOutput`). The small activations of the MLPs keep ``nn.ELU``,
-    whose call costs less."""
+    """``nn.ELU()`` for the conv stacks' large activations: the same function and gradient (up to float rounding)
+    by :class:`_EluKeepingOutput`, on every device."""
 
     def forward(self, x: Tensor) -> Tensor:
         return _EluKeepingOutput.apply(x)
+
+
+class ELU(nn.Module):
+    """``nn.ELU()`` for the MLPs and the RSSM: on a CPU, from :data:`_ELU_BY_EXP_MIN` numbers up (the imagination's
+    batches of states), :class:`_EluKeepingOutput`; a plain ``F.elu`` below that and on other devices."""
+
+    def forward(self, x: Tensor) -> Tensor:
+        if x.device.type == "cpu" and x.numel() >= _ELU_BY_EXP_MIN:
+            return _EluKeepingOutput.apply(x)
+        return F.elu(x)
+
+
+MLP_ACTS: dict[str, type[nn.Module]] = {"elu": ELU, "silu": nn.SiLU}
+"""Hidden-layer activations of :class:`MLP` by name."""
 
 
 def space_to_depth(x: Tensor) -> Tensor:

@@ -21,7 +21,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from coworld.models.distributions import OneHotCategorical, exponential_noise, log_softmax, softmax
-from coworld.models.networks import LayerNormGRUCell, glorot_init
+from coworld.models.networks import ELU, LayerNormGRUCell, glorot_init
 
 __all__ = ["RSSM", "State", "stack_states"]
 
@@ -50,12 +50,10 @@ class RSSM(nn.Module):
         self.unimix = unimix
         self.feat_size = deter + stoch * classes
         """Length of :meth:`features`: ``D + S * K``."""
-        self.img_in = nn.Sequential(nn.Linear(stoch * classes + action_size, hidden), nn.ELU())
+        self.img_in = nn.Sequential(nn.Linear(stoch * classes + action_size, hidden), ELU())
         self.cell = LayerNormGRUCell(in_size=hidden, size=deter)
-        self.img_out = nn.Sequential(nn.Linear(deter, hidden), nn.ELU(), nn.Linear(hidden, stoch * classes))
-        self.obs_out = nn.Sequential(
-            nn.Linear(deter + embed_size, hidden), nn.ELU(), nn.Linear(hidden, stoch * classes)
-        )
+        self.img_out = nn.Sequential(nn.Linear(deter, hidden), ELU(), nn.Linear(hidden, stoch * classes))
+        self.obs_out = nn.Sequential(nn.Linear(deter + embed_size, hidden), ELU(), nn.Linear(hidden, stoch * classes))
         glorot_init(self.img_in)
         glorot_init(self.img_out)
         glorot_init(self.obs_out)

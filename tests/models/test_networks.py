@@ -8,6 +8,7 @@ import torch
 from coworld.config import Config
 from coworld.errors import CoworldError
 from coworld.models.networks import (
+    ELU,
     MLP,
     ConvDecoder,
     ConvELU,
@@ -140,6 +141,23 @@ def test_conv2d_stride2_is_the_strided_convolution_with_its_gradients(size: int,
     grad = torch.randn_like(want)
     for a, c in zip(torch.autograd.grad(got, inputs, grad), torch.autograd.grad(want, inputs, grad), strict=True):
         torch.testing.assert_close(a, c)
+
+
+@pytest.mark.parametrize("module", [ConvELU, ELU])
+@pytest.mark.parametrize("shape", [(3, 4, 5, 6), (9, 8, 16, 16), (300, 64), (20, 64)])
+def test_elus_are_the_elu_with_its_gradient(module: type[torch.nn.Module], shape: tuple[int, ...]) -> None:
+    """In float32, below and above the size where :class:`ELU` leaves ``F.elu``: values within one rounding of
+    1.0 of PyTorch's, the same gradient, the input's memory order kept."""
+    x = torch.randn(*shape) * 3
+    if x.ndim == 4:
+        x = x.contiguous(memory_format=torch.channels_last)
+    x.requires_grad_()
+    got, want = module()(x), torch.nn.functional.elu(x)
+    torch.testing.assert_close(got, want, rtol=0.0, atol=1.2e-7)
+    assert got.stride() == want.stride()
+    grad = torch.randn_like(want)
+    got_grad, want_grad = torch.autograd.grad(got, x, grad)[0], torch.autograd.grad(want, x, grad)[0]
+    torch.testing.assert_close(got_grad, want_grad, rtol=0.0, atol=1.2e-7 * float(grad.abs().max()))
 
 
 def test_conv_elu_is_the_elu_with_its_gradient() -> None:
