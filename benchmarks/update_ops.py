@@ -6,8 +6,13 @@ one it replaces, forward and backward where both run, on one CPU thread.
 Rows:
 - ``exponential``: :func:`coworld.models.distributions.exponential_noise` against ``Tensor.exponential_`` for the
   latents of an imagination step at the tiny preset (512 x 8 x 8 numbers; the same numbers, checked);
-- ``log_softmax``: the transposed (log-)softmax of :mod:`coworld.models.distributions` against the plain one at
-  the RSSM posterior's sizes in a batch of 16 sequences and of 64 and 512 states, forward and backward;
+- ``log_softmax``: the classes-first (log-)softmax of :mod:`coworld.models.distributions` against the plain one
+  and against the transposed copy it replaced, at the RSSM posterior's sizes in batches of 8 and 16 sequences and
+  of 64 and 512 states, forward and backward;
+- ``ELU``: :class:`coworld.models.networks.ELU` (``max(x, exp(min(x, 0)) - 1)``, backward from its output) against
+  ``F.elu`` at an imagination step's hidden layer, the heads' on a whole imagined trajectory and a conv layer's;
+- ``encoder layer 2 input gradient``: its phases interleaved straight into the padded gradient against the
+  transposed convolution then ``F.pad``;
 - ``adamw``: the world model's AdamW step at the tiny preset, fused against PyTorch's default (``foreach``);
 - ``decoder layer 2`` / ``3``: :func:`coworld.models.networks.conv_transpose_stride2` forward and backward, its
   backward PyTorch's own transposed-convolution backward against the phase convolution's autograd, at batch 512.
@@ -26,7 +31,14 @@ import torch
 
 from coworld.config import make_config
 from coworld.models.distributions import exponential_noise, log_softmax
-from coworld.models.networks import conv_transpose_stride2, depth_to_space, stride2_phases
+from coworld.models.networks import (
+    ELU,
+    ConvELU,
+    _transposed_input_grad,
+    conv_transpose_stride2,
+    depth_to_space,
+    stride2_phases,
+)
 from coworld.models.world_model import WorldModel
 
 
@@ -65,23 +77,61 @@ def main() -> None:
         median_us(lambda: torch.empty(shape).exponential_(generator=generator), args.repeats),
     )
 
-    for rows in (16, 64, 512):
+    for rows in (8, 16, 64, 512):
         x = torch.randn(rows, 8, 8, requires_grad=True)
         grad = torch.randn(rows, 8, 8)
 
-        def transposed(x: torch.Tensor = x, grad: torch.Tensor = grad) -> None:
-            out = torch.log_softmax(x.transpose(-1, -2).contiguous(), -2).transpose(-1, -2)
-            torch.autograd.grad(out, x, grad)
+        def ours(x: torch.Tensor = x, grad: torch.Tensor = grad) -> None:
+            torch.autograd.grad(log_softmax(x), x, grad)
 
         def plain(x: torch.Tensor = x, grad: torch.Tensor = grad) -> None:
             torch.autograd.grad(torch.log_softmax(x, -1), x, grad)
 
+        def transposed(x: torch.Tensor = x, grad: torch.Tensor = grad) -> None:  # the form before classes-first
+            out = torch.log_softmax(x.transpose(-1, -2).contiguous(), -2).transpose(-1, -2)
+            torch.autograd.grad(out, x, grad)
+
         label = "used" if log_softmax(x.detach()).stride() != torch.log_softmax(x.detach(), -1).stride() else "not used"
         row(
-            f"log_softmax transposed ({label}), {rows} x 8 x 8",
-            median_us(transposed, args.repeats),
+            f"log_softmax classes-first ({label}), {rows} x 8 x 8",
+            median_us(ours, args.repeats),
             median_us(plain, args.repeats),
         )
+        row(
+            f"  against the transposed copy, {rows} x 8 x 8",
+            median_us(ours, args.repeats),
+            median_us(transposed, args.repeats),
+        )
+
+    for shape in ((512, 64), (5632, 64), (512, 8, 30, 30)):
+        x = torch.randn(shape, requires_grad=True)
+        if x.ndim == 4:
+            x = x.detach().contiguous(memory_format=torch.channels_last).requires_grad_()
+        grad = torch.randn_like(x)
+        module = ConvELU() if x.ndim == 4 else ELU()
+
+        def ours(x: torch.Tensor = x, grad: torch.Tensor = grad, module: torch.nn.Module = module) -> None:
+            torch.autograd.grad(module(x), x, grad)
+
+        def plain(x: torch.Tensor = x, grad: torch.Tensor = grad) -> None:
+            torch.autograd.grad(torch.nn.functional.elu(x), x, grad)
+
+        size = " x ".join(map(str, shape))
+        row(f"ELU forward + backward, {size}", median_us(ours, args.repeats), median_us(plain, args.repeats))
+
+    # The encoder's second layer (8 -> 16 channels, 31 x 31 -> 14 x 14): its input gradient against the
+    # transposed convolution then padding it took before.
+    weight = torch.randn(16, 8, 4, 4)
+    grad = torch.randn(512, 16, 14, 14).contiguous(memory_format=torch.channels_last)
+    padded = torch.nn.functional.pad(conv_transpose_stride2(grad, weight, None), (0, 1, 0, 1))
+    assert torch.allclose(_transposed_input_grad(grad, weight, padded.shape[-2:]), padded, atol=1e-5)
+    row(
+        "encoder layer 2 input gradient, batch 512",
+        median_us(lambda: _transposed_input_grad(grad, weight, padded.shape[-2:]), args.repeats),
+        median_us(
+            lambda: torch.nn.functional.pad(conv_transpose_stride2(grad, weight, None), (0, 1, 0, 1)), args.repeats
+        ),
+    )
 
     params = list(WorldModel(config=make_config("tiny").world_model, action_size=6).parameters())
     for param in params:
