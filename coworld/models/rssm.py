@@ -123,6 +123,7 @@ class RSSM(nn.Module):
         and ``T`` posterior draws would take one by one, in the same order).
         """
         batch, length = action.shape[:2]
+        given = state is not None
         if state is None:
             state = self.initial(batch, action.device)
         keep = (~is_first.bool()).to(action.dtype).transpose(0, 1)[..., None]  # (T, B, 1)
@@ -133,15 +134,23 @@ class RSSM(nn.Module):
         action_share = F.linear(action.transpose(0, 1) * keep, img_in.weight[:, stoch_size:], img_in.bias)
         stoch_weight = img_in.weight[:, :stoch_size].t()
         noise = exponential_noise((length, 2, batch, self.stoch, self.classes), action.device)
-        deter, stoch = state["deter"], state["stoch"]
+        # Which steps reset a sequence (on a CPU, where reading them costs no synchronisation): elsewhere the
+        # multiplications by `keep` multiply by 1, and before the first step a zero state needs none either.
+        if action.device.type == "cpu":
+            resets = is_first.bool().any(0).tolist()
+            resets[0] = resets[0] and given
+        else:
+            resets = [True] * length
+        deter, stoch = state["deter"], state["stoch"].reshape(batch, stoch_size)
         deters: list[Tensor] = []
         posts: list[State] = []
         for t in range(length):
-            stoch = (stoch * keep[t, ..., None]).reshape(batch, stoch_size)
+            if resets[t]:
+                stoch, deter = stoch * keep[t], deter * keep[t]
             x = act(torch.addmm(action_share[t], stoch.to(action_share.dtype), stoch_weight))
-            deter = self.cell(x, deter * keep[t])
+            deter = self.cell(x, deter)
             post = self._posterior({"deter": deter}, embed_share[t], True, noise[t, 1])
-            stoch = post["stoch"]
+            stoch = post["stoch"].reshape(batch, stoch_size)
             deters.append(deter)
             posts.append(post)
         prior_noise = noise[:, 0].reshape(length * batch, self.stoch, self.classes)

@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
+import pytest
 import torch
 
 from coworld.config import Config
-from coworld.models.rssm import RSSM
+from coworld.models.rssm import RSSM, stack_states
 
 
 def _rssm(tiny: Config, unimix: float = 0.0) -> RSSM:
@@ -65,3 +66,29 @@ def test_latent_sample_passes_gradient_to_the_representation(tiny: Config) -> No
     post, _ = rssm.obs_step(rssm.initial(2), torch.zeros(2, 3), embed)
     (post["stoch"] * torch.randn_like(post["stoch"])).sum().backward()
     assert embed.grad is not None and embed.grad.abs().sum() > 0
+
+
+@pytest.mark.parametrize("given", [False, True])
+def test_observe_is_obs_step_at_every_step_through_resets(tiny: Config, given: bool) -> None:
+    """``observe`` (its work batched across steps, its multiplications by ``keep`` left out where no sequence
+    resets) gives what stepping ``obs_step`` gives, from the same random numbers: episodes that start mid-window,
+    and a start state that some sequences continue from."""
+    rssm = _rssm(tiny)
+    batch, length = 3, 7
+    embed, action = torch.randn(batch, length, 10), torch.randn(batch, length, 3)
+    is_first = torch.zeros(batch, length, dtype=torch.bool)
+    is_first[1, 3] = is_first[2, 5] = True
+    is_first[0, 0] = not given  # with a start state, every sequence continues from it but the first, or none
+    start = {key: torch.randn_like(value) for key, value in rssm.initial(batch).items()} if given else None
+    torch.manual_seed(0)
+    post, prior = rssm.observe(embed, action, is_first, start)
+    torch.manual_seed(0)
+    state = start if start is not None else rssm.initial(batch)
+    posts, priors = [], []
+    for t in range(length):
+        state, step_prior = rssm.obs_step(state, action[:, t], embed[:, t], is_first[:, t])
+        posts.append(state)
+        priors.append(step_prior)
+    for got, want in ((post, stack_states(posts)), (prior, stack_states(priors))):
+        for key in want:
+            torch.testing.assert_close(got[key], want[key])
