@@ -35,7 +35,7 @@ from coworld.models.distributions import (
     TruncatedNormal,
 )
 from coworld.models.networks import MLP, frozen_parameters
-from coworld.models.rssm import State, stack_states
+from coworld.models.rssm import State
 from coworld.models.world_model import ScalarHead, WorldModel
 
 __all__ = ["Actor", "ActorCritic", "ValueRegulariser", "flatten_states"]
@@ -52,6 +52,17 @@ def flatten_states(state: State) -> State:
     deter = state["deter"]
     n = deter.shape[:-1].numel()
     return {key: value.detach().reshape(n, *value.shape[deter.ndim - 1 :]) for key, value in state.items()}
+
+
+def _stack_imagined(states: list[State], feat: Tensor, world_model: WorldModel) -> State:
+    """The imagined states with batch ``(H + 1, N)``: ``deter`` and (where its dtype is the features') ``stoch`` as
+    views of the stacked features ``feat (H + 1, N, D + S K)``, which hold them already, rather than two more
+    stacked copies."""
+    rssm = world_model.rssm
+    state = {"deter": feat[..., : rssm.deter_size], "logits": torch.stack([s["logits"] for s in states])}
+    stoch = feat[..., rssm.deter_size :].unflatten(-1, (rssm.stoch, rssm.classes))
+    state["stoch"] = stoch if stoch.dtype == states[0]["stoch"].dtype else torch.stack([s["stoch"] for s in states])
+    return state
 
 
 class Actor(nn.Module):
@@ -206,7 +217,7 @@ class ActorCritic(nn.Module):
         return {
             "feat": feat,
             "action": torch.stack(actions, dim=0),
-            "state": stack_states(states, dim=0),
+            "state": _stack_imagined(states, feat, world_model),
             "reward": reward,
             "continuation": continuation,
             "weight": weight.detach(),

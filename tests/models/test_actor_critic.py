@@ -44,7 +44,12 @@ def test_imagine_shapes_weights_and_first_continuation(tiny: Config) -> None:
     traj = ac.imagine(wm, start, is_terminal=is_terminal)
     assert traj["feat"].shape == (horizon + 1, n, wm.feat_size)
     assert traj["action"].shape == (horizon + 1, n, ACTION_SIZE)
-    assert traj["state"]["deter"].shape == (horizon + 1, n, tiny.world_model.deter)
+    state = traj["state"]
+    assert state["deter"].shape == (horizon + 1, n, tiny.world_model.deter)
+    assert state["stoch"].shape == state["logits"].shape == (horizon + 1, n, wm.rssm.stoch, wm.rssm.classes)
+    for key in ("deter", "stoch", "logits"):
+        torch.testing.assert_close(state[key][0], start[key])
+    torch.testing.assert_close(state["stoch"][1:].detach().sum(-1), torch.ones(horizon, n, wm.rssm.stoch))
     for key in ("reward", "continuation", "weight"):
         assert traj[key].shape == (horizon + 1, n)
     assert torch.equal(traj["action"][0], torch.zeros(n, ACTION_SIZE))
