@@ -93,7 +93,7 @@ def discount_loss(pred: Bernoulli | Tensor, continuation: Tensor) -> Tensor:
 
 
 def kl_balanced_loss(
-    post_logits: Tensor, prior_logits: Tensor, balance: float, free_nats: float
+    post_logits: Tensor, prior_logits: Tensor, balance: float, free_nats: float, normalised: bool = False
 ) -> tuple[Tensor, Tensor]:
     """DreamerV2's KL balancing with batch-averaged free nats.
 
@@ -106,10 +106,11 @@ def kl_balanced_loss(
 
     Shapes: logits ``(B, T, S, K)``. Returns ``(loss, kl)``: the scalar loss and the per-step KL ``(B, T)``
     *before* free nats, whose value is ``KL[post || prior]`` and whose gradient is already split
-    ``a * KL_prior + (1 - a) * KL_post``.
+    ``a * KL_prior + (1 - a) * KL_post``. ``normalised``: the logits are log-probabilities already (see
+    :func:`~coworld.models.distributions.categorical_kl`).
     """
-    kl_prior = categorical_kl(post_logits.detach(), prior_logits)
-    kl_post = categorical_kl(post_logits, prior_logits.detach())
+    kl_prior = categorical_kl(post_logits.detach(), prior_logits, normalised)
+    kl_post = categorical_kl(post_logits, prior_logits.detach(), normalised)
     free = torch.tensor(free_nats, dtype=kl_prior.dtype, device=kl_prior.device)
     loss = balance * torch.maximum(kl_prior.mean(), free) + (1.0 - balance) * torch.maximum(kl_post.mean(), free)
     return loss, balance * kl_prior + (1.0 - balance) * kl_post

@@ -243,13 +243,17 @@ class OneHotCategorical:
         return -(log_probs.exp() * log_probs).sum(dim=(-2, -1))
 
 
-def categorical_kl(lhs_logits: Tensor, rhs_logits: Tensor) -> Tensor:
+def categorical_kl(lhs_logits: Tensor, rhs_logits: Tensor, normalised: bool = False) -> Tensor:
     """``KL[lhs || rhs]`` of independent categoricals, summed over ``S`` and ``K``.
 
-    Shapes: ``(..., S, K)`` each, returns ``(...)``.
+    Shapes: ``(..., S, K)`` each, returns ``(...)``. ``normalised``: both are log-probabilities already (as the
+    RSSM's are), used as they are; the same value and, to whatever normalised them, the same gradient (see
+    :class:`OneHotCategorical`), without two more (log-)softmax passes each way.
     """
-    lhs_log = log_softmax(lhs_logits.float())
-    rhs_log = log_softmax(rhs_logits.float())
+    if normalised:
+        lhs_log, rhs_log = lhs_logits.float(), rhs_logits.float()
+    else:
+        lhs_log, rhs_log = log_softmax(lhs_logits.float()), log_softmax(rhs_logits.float())
     return (lhs_log.exp() * (lhs_log - rhs_log)).sum(dim=(-2, -1))
 
 

@@ -161,7 +161,9 @@ class WorldModel(nn.Module):
         if self.discount_head is not None:
             continuation = 1.0 - batch["is_terminal"].float()
             terms["discount"] = discount_loss(self.discount_head(feat), continuation)
-        kl_loss, terms["kl"] = kl_balanced_loss(post["logits"], prior["logits"], cfg.kl_balance, cfg.free_nats)
+        kl_loss, terms["kl"] = kl_balanced_loss(
+            post["logits"], prior["logits"], cfg.kl_balance, cfg.free_nats, normalised=True
+        )
         for name, term in terms.items():
             assert term.shape == (batch_size, length), f"{name} term has shape {tuple(term.shape)}"
         loss = cfg.image_scale * terms["image"].mean() + cfg.reward_scale * terms["reward"].mean()

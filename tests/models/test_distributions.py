@@ -170,3 +170,17 @@ def test_softmax_helpers_are_torch_softmax_with_its_gradient(shape: tuple[int, .
         assert got.shape == want.shape
         torch.testing.assert_close(got, want)
         torch.testing.assert_close(torch.autograd.grad(got, x, grad)[0], torch.autograd.grad(want, x, grad)[0])
+
+
+def test_categorical_kl_of_normalised_logits_has_the_value_and_gradient_of_the_full_one() -> None:
+    """Log-probabilities used as they are give the KL and, to the raw outputs they were normalised from, the
+    gradient that normalising them again gives."""
+    raw = torch.randn(2, 2, 4, 8, dtype=torch.float64, requires_grad=True)
+    lhs, rhs = log_softmax(raw[0]), log_softmax(raw[1])
+    got, want = categorical_kl(lhs, rhs, normalised=True), categorical_kl(lhs, rhs)
+    torch.testing.assert_close(got, want)
+    weights = torch.randn(2)
+    torch.testing.assert_close(
+        torch.autograd.grad((got * weights).sum(), raw, retain_graph=True)[0],
+        torch.autograd.grad((want * weights).sum(), raw)[0],
+    )
