@@ -35,6 +35,7 @@ __all__ = [
     "check_image_shape",
     "conv2d_stride2",
     "conv_transpose_stride2",
+    "conv_transpose_stride2_elu",
     "depth_to_space",
     "frozen_parameters",
     "glorot_init",
@@ -230,6 +231,51 @@ class _ConvTransposeStride2(torch.autograd.Function):
         return _stride2_backward(grad, x, weight, transposed=True, mask=(needs[0], needs[1], ctx.has_bias and needs[2]))
 
 
+def conv_transpose_stride2_elu(x: Tensor, weight: Tensor, bias: Tensor | None) -> Tensor:
+    """``F.elu(conv_transpose_stride2(x, weight, bias))``, its activation applied to the phases and its last pass
+    writing them interleaved (the copy that interleaves them is the activation's own output). Equal to the two
+    calls up to float rounding, gradients included; the backward reads the output, as :class:`ConvELU`'s does.
+    Shapes as :func:`conv_transpose_stride2`'s; ``x`` larger than 1 x 1."""
+    return _ConvTransposeStride2ELU.apply(x, weight, bias)
+
+
+class _ConvTransposeStride2ELU(torch.autograd.Function):
+    """:func:`conv_transpose_stride2_elu`: the forward by the phases, :func:`_elu_by_exp`'s last pass (or, off a
+    CPU, the copy after ``F.elu``) interleaving them; the backward the ELU's from its output, then
+    :class:`_ConvTransposeStride2`'s."""
+
+    @staticmethod
+    def forward(ctx: Any, x: Tensor, weight: Tensor, bias: Tensor | None) -> Tensor:
+        phases = stride2_phases(x, weight, bias)  # (N, 4 C, rows, cols): phase (p, s) of channel c is (p, s, c)
+        n, _, rows, cols = phases.shape
+        channels = weight.shape[1]
+        interleaved = phases.new_empty(n, 2 * rows, 2 * cols, channels)  # channels last
+        target = interleaved.view(n, rows, 2, cols, 2, channels)  # (n, q, p, r, s, c)
+
+        def as_target(t: Tensor) -> Tensor:
+            return t.permute(0, 2, 3, 1).reshape(n, rows, cols, 2, 2, channels).transpose(2, 3)
+
+        if phases.device.type == "cpu" and phases.dtype in (torch.float32, torch.float64):
+            negative = torch.clamp_max(phases, 0.0)
+            negative.exp_()
+            negative.sub_(1.0)
+            torch.maximum(as_target(phases), as_target(negative), out=target)  # as _elu_by_exp
+        else:
+            target.copy_(as_target(F.elu(phases)))
+        height, width = 2 * (x.shape[-2] - 1) + weight.shape[-1], 2 * (x.shape[-1] - 1) + weight.shape[-1]
+        out = interleaved.permute(0, 3, 1, 2)[..., :height, :width]
+        ctx.save_for_backward(x.to(out.dtype), weight.to(out.dtype), out)  # as _keep_for_backward, and the output
+        ctx.has_bias = bias is not None
+        return out
+
+    @staticmethod
+    def backward(ctx: Any, grad: Tensor) -> tuple[Tensor | None, Tensor | None, Tensor | None]:
+        x, weight, out = ctx.saved_tensors
+        needs = ctx.needs_input_grad
+        grad = torch.ops.aten.elu_backward(grad, 1.0, 1, 1, True, out)
+        return _stride2_backward(grad, x, weight, transposed=True, mask=(needs[0], needs[1], ctx.has_bias and needs[2]))
+
+
 def _keep_for_backward(ctx: Any, x: Tensor, weight: Tensor, bias: Tensor | None, out: Tensor) -> Tensor:
     """Save ``x`` and ``weight`` for a stride-2 convolution's backward, in ``out``'s dtype (under autocast the
     convolution ran in it, and its backward does too), and whether it has a bias; returns ``out``."""
@@ -378,16 +424,21 @@ class ConvDecoder(nn.Module):
         """
         batch = feat.shape[:-1]
         out = self.linear(feat.reshape(-1, feat.shape[-1])).reshape(-1, 32 * self.depth, 1, 1)
-        last = len(self.net) - 1
-        for i, layer in enumerate(self.net):
+        layers, i = list(self.net), 0
+        while i < len(layers):
+            layer = layers[i]
             if isinstance(layer, nn.ConvTranspose2d):
                 out = out.contiguous(memory_format=torch.channels_last)
-                if i == last:
+                if i == len(layers) - 1:
                     out = stride2_phases(out, layer.weight, layer.bias)
+                elif out.shape[-1] > 1 and isinstance(layers[i + 1], ConvELU):
+                    out = conv_transpose_stride2_elu(out, layer.weight, layer.bias)
+                    i += 1  # the activation after it is applied
                 else:
                     out = conv_transpose_stride2(out, layer.weight, layer.bias)
             else:
                 out = layer(out)
+            i += 1
         return out.reshape(*batch, *out.shape[1:])
 
 
