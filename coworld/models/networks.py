@@ -148,10 +148,13 @@ def space_to_depth(x: Tensor) -> Tensor:
     """
     *batch, height, width, channels = x.shape
     rows = x.reshape(-1, height // 2, 2, width // 2, 2 * channels)  # (M, q, p, r, [s, c])
-    out = x.new_empty(rows.shape[0], height // 2, width // 2, 2, 2 * channels)  # (M, q, r, p, [s, c])
+    aligned = rows.storage_offset() % 2 == 0 and rows.stride(-1) == 1 and all(n % 2 == 0 for n in rows.stride()[:-1])
+    if x.element_size() == 1 and aligned:  # bytes (uint8 images) move as half as many 2-byte words: [s, c] is 2 C
+        rows = rows.view(torch.int16)
+    out = rows.new_empty(rows.shape[0], height // 2, width // 2, 2, rows.shape[-1])  # (M, q, r, p, [s, c])
     for p in range(2):
         out[:, :, :, p] = rows[:, :, p]
-    return out.reshape(*batch, height // 2, width // 2, 4 * channels)
+    return out.view(x.dtype).reshape(*batch, height // 2, width // 2, 4 * channels)
 
 
 def stride2_phases(x: Tensor, weight: Tensor, bias: Tensor | None) -> Tensor:

@@ -101,6 +101,10 @@ def test_space_to_depth_puts_each_2x2_phase_in_channels_and_depth_to_space_undoe
             assert torch.equal(phases[..., channels], image[..., p::2, s::2, :])
     flat = phases.reshape(6, 3, 2, 12).permute(0, 3, 1, 2)  # channels first
     assert torch.equal(depth_to_space(flat).permute(0, 2, 3, 1), image.reshape(6, 6, 4, 3))
+    # A view that starts at an odd byte is rearranged the same.
+    offset = torch.randint(0, 256, (1 + image.numel(),), dtype=torch.uint8)[1:].view(image.shape)
+    assert offset.storage_offset() == 1
+    assert torch.equal(space_to_depth(offset), space_to_depth(offset.clone()))
     # The world model's two preprocessings hold the same numbers.
     expected = space_to_depth(preprocess_image(image).movedim(-3, -1)).movedim(-1, -3)
     assert torch.equal(preprocess_phases(image), expected)
