@@ -35,7 +35,6 @@ __all__ = [
     "check_image_shape",
     "conv2d_stride2",
     "conv_transpose_stride2",
-    "conv_transpose_stride2_elu",
     "depth_to_space",
     "frozen_parameters",
     "glorot_init",
@@ -82,43 +81,14 @@ def frozen_parameters(module: nn.Module) -> Iterator[None]:
             p.requires_grad_(True)
 
 
-_ELU_BY_EXP_MIN = 16384
-"""From this many numbers up :class:`ELU` runs as :class:`_EluKeepingOutput`; below, a plain ``F.elu`` call costs
-less than the custom function's own overhead (about 25 us forward and backward; benchmarks/update_ops.py)."""
-
-
-_EXP_FLOOR = -50.0
-"""Where ``exp(x) - 1`` rounds to -1 in float32 and float64 alike. PyTorch's vectorised CPU ``exp`` takes a path
-20-50x slower for arguments that underflow (below about -87 in float32), which a layer's large negative
-pre-activations reach; clamped here, they never do."""
-
-
-def _elu_by_exp(x: Tensor) -> Tensor:
-    """``F.elu(x)`` as ``max(x, exp(clamp(x, -50, 0)) - 1)``: four passes of vectorised ``exp``, subtraction and
-    comparisons, which on a CPU take 0.6-0.8 of the time of PyTorch's one pass of ``expm1``. The values differ by at
-    most one rounding of 1.0 (6e-8 in float32) where ``x`` is negative and near 0."""
-    negative = _elu_negative_part(x)
-    return torch.maximum(x, negative, out=negative)
-
-
-def _elu_negative_part(x: Tensor) -> Tensor:
-    """``exp(clamp(x, -50, 0)) - 1``, a new tensor: :func:`_elu_by_exp` is its maximum with ``x`` (``exp(x) - 1 >= x``
-    where ``x <= 0``, and 0 < x where ``x > 0``)."""
-    out = torch.clamp(x, _EXP_FLOOR, 0.0)
-    out.exp_()
-    return out.sub_(1.0)
-
-
 class _EluKeepingOutput(torch.autograd.Function):
     """``F.elu(x)`` whose backward reads its output (``grad * (y + 1)`` where ``x <= 0``) rather than its input
     (which PyTorch's keeps, to take ``exp(x)`` again): no second exponential, and the input, a layer's output that
-    nothing else keeps, is freed as soon as the activation has run. On a CPU in float32 or float64 the forward is
-    :func:`_elu_by_exp`."""
+    nothing else keeps, is freed as soon as the activation has run (the next layer keeps the output anyway)."""
 
     @staticmethod
     def forward(ctx: Any, x: Tensor) -> Tensor:
-        by_exp = x.device.type == "cpu" and x.dtype in (torch.float32, torch.float64)
-        out = _elu_by_exp(x) if by_exp else F.elu(x)
+        out = F.elu(x)
         ctx.save_for_backward(out)
         return out
 
@@ -129,19 +99,25 @@ class _EluKeepingOutput(torch.autograd.Function):
 
 
 class ConvELU(nn.Module):
-    """``nn.ELU()`` for the conv stacks' large activations: the same function and gradient (up to float rounding)
-    by :class:`_EluKeepingOutput`, on every device."""
+    """``nn.ELU()`` for the conv stacks' large activations: the same function and gradient (up to float rounding),
+    its backward from the output (:class:`_EluKeepingOutput`)."""
 
     def forward(self, x: Tensor) -> Tensor:
         return _EluKeepingOutput.apply(x)
 
 
+_ELU_KEEPING_OUTPUT_MIN = 16384
+"""From this many numbers up :class:`ELU` runs as :class:`_EluKeepingOutput`; below, a plain ``F.elu`` call costs
+less than the custom function's own overhead."""
+
+
 class ELU(nn.Module):
-    """``nn.ELU()`` for the MLPs and the RSSM: on a CPU, from :data:`_ELU_BY_EXP_MIN` numbers up (the imagination's
-    batches of states), :class:`_EluKeepingOutput`; a plain ``F.elu`` below that and on other devices."""
+    """``nn.ELU()`` for the MLPs and the RSSM: from :data:`_ELU_KEEPING_OUTPUT_MIN` numbers up (the imagination's
+    batches of states), :class:`_EluKeepingOutput`, which leaves one tensor per layer for the backward where
+    ``nn.ELU`` and the next layer keep two; a plain ``F.elu`` below that."""
 
     def forward(self, x: Tensor) -> Tensor:
-        if x.device.type == "cpu" and x.numel() >= _ELU_BY_EXP_MIN:
+        if x.numel() >= _ELU_KEEPING_OUTPUT_MIN:
             return _EluKeepingOutput.apply(x)
         return F.elu(x)
 
@@ -243,49 +219,6 @@ class _ConvTransposeStride2(torch.autograd.Function):
     def backward(ctx: Any, grad: Tensor) -> tuple[Tensor | None, Tensor | None, Tensor | None]:
         x, weight = ctx.saved_tensors
         needs = ctx.needs_input_grad
-        return _stride2_backward(grad, x, weight, transposed=True, mask=(needs[0], needs[1], ctx.has_bias and needs[2]))
-
-
-def conv_transpose_stride2_elu(x: Tensor, weight: Tensor, bias: Tensor | None) -> Tensor:
-    """``F.elu(conv_transpose_stride2(x, weight, bias))``, its activation applied to the phases and its last pass
-    writing them interleaved (the copy that interleaves them is the activation's own output). Equal to the two
-    calls up to float rounding, gradients included; the backward reads the output, as :class:`ConvELU`'s does.
-    Shapes as :func:`conv_transpose_stride2`'s; ``x`` larger than 1 x 1."""
-    return _ConvTransposeStride2ELU.apply(x, weight, bias)
-
-
-class _ConvTransposeStride2ELU(torch.autograd.Function):
-    """:func:`conv_transpose_stride2_elu`: the forward by the phases, :func:`_elu_by_exp`'s last pass (or, off a
-    CPU, the copy after ``F.elu``) interleaving them; the backward the ELU's from its output, then
-    :class:`_ConvTransposeStride2`'s."""
-
-    @staticmethod
-    def forward(ctx: Any, x: Tensor, weight: Tensor, bias: Tensor | None) -> Tensor:
-        phases = stride2_phases(x, weight, bias)  # (N, 4 C, rows, cols): phase (p, s) of channel c is (p, s, c)
-        n, _, rows, cols = phases.shape
-        channels = weight.shape[1]
-        interleaved = phases.new_empty(n, 2 * rows, 2 * cols, channels)  # channels last
-        target = interleaved.view(n, rows, 2, cols, 2, channels)  # (n, q, p, r, s, c)
-
-        def as_target(t: Tensor) -> Tensor:
-            return t.permute(0, 2, 3, 1).reshape(n, rows, cols, 2, 2, channels).transpose(2, 3)
-
-        if phases.device.type == "cpu" and phases.dtype in (torch.float32, torch.float64):
-            negative = _elu_negative_part(phases)
-            torch.maximum(as_target(phases), as_target(negative), out=target)  # as _elu_by_exp
-        else:
-            target.copy_(as_target(F.elu(phases)))
-        height, width = 2 * (x.shape[-2] - 1) + weight.shape[-1], 2 * (x.shape[-1] - 1) + weight.shape[-1]
-        out = interleaved.permute(0, 3, 1, 2)[..., :height, :width]
-        ctx.save_for_backward(x.to(out.dtype), weight.to(out.dtype), out)  # as _keep_for_backward, and the output
-        ctx.has_bias = bias is not None
-        return out
-
-    @staticmethod
-    def backward(ctx: Any, grad: Tensor) -> tuple[Tensor | None, Tensor | None, Tensor | None]:
-        x, weight, out = ctx.saved_tensors
-        needs = ctx.needs_input_grad
-        grad = torch.ops.aten.elu_backward(grad, 1.0, 1, 1, True, out)
         return _stride2_backward(grad, x, weight, transposed=True, mask=(needs[0], needs[1], ctx.has_bias and needs[2]))
 
 
@@ -437,21 +370,16 @@ class ConvDecoder(nn.Module):
         """
         batch = feat.shape[:-1]
         out = self.linear(feat.reshape(-1, feat.shape[-1])).reshape(-1, 32 * self.depth, 1, 1)
-        layers, i = list(self.net), 0
-        while i < len(layers):
-            layer = layers[i]
+        last = len(self.net) - 1
+        for i, layer in enumerate(self.net):
             if isinstance(layer, nn.ConvTranspose2d):
                 out = out.contiguous(memory_format=torch.channels_last)
-                if i == len(layers) - 1:
+                if i == last:
                     out = stride2_phases(out, layer.weight, layer.bias)
-                elif out.shape[-1] > 1 and isinstance(layers[i + 1], ConvELU):
-                    out = conv_transpose_stride2_elu(out, layer.weight, layer.bias)
-                    i += 1  # the activation after it is applied
                 else:
                     out = conv_transpose_stride2(out, layer.weight, layer.bias)
             else:
                 out = layer(out)
-            i += 1
         return out.reshape(*batch, *out.shape[1:])
 
 

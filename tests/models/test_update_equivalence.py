@@ -20,7 +20,7 @@ from coworld.config import Config
 from coworld.losses.dreamer import kl_balanced_loss, reward_loss
 from coworld.models.actor_critic import ActorCritic, flatten_states
 from coworld.models.distributions import UnitGaussian
-from coworld.models.networks import conv_transpose_stride2, conv_transpose_stride2_elu, frozen_parameters
+from coworld.models.networks import conv_transpose_stride2, frozen_parameters
 from coworld.models.rssm import RSSM, stack_states
 from coworld.models.world_model import WorldModel
 
@@ -175,23 +175,3 @@ def test_conv_transpose_stride2_is_the_transposed_convolution(
         want = torch.autograd.grad(expected, [x, weight, bias], grad, retain_graph=True)
         for a, b in zip(got, want, strict=True):
             torch.testing.assert_close(a, b)
-
-
-@pytest.mark.parametrize(("c_in", "c_out", "kernel", "height", "width"), [(4, 3, 5, 5, 7), (3, 2, 6, 4, 3)])
-@pytest.mark.parametrize("bias", [True, False])
-def test_conv_transpose_stride2_elu_is_the_activated_transposed_convolution(
-    c_in: int, c_out: int, kernel: int, height: int, width: int, bias: bool
-) -> None:
-    x = torch.randn(2, c_in, height, width, dtype=torch.float64, requires_grad=True)
-    weight = torch.randn(c_in, c_out, kernel, kernel, dtype=torch.float64, requires_grad=True)
-    b = torch.randn(c_out, dtype=torch.float64, requires_grad=True) if bias else None
-    inputs = [x, weight] + ([b] if bias else [])
-    expected = F.elu(F.conv_transpose2d(x, weight, b, stride=2))
-    for layout in (torch.contiguous_format, torch.channels_last):
-        out = conv_transpose_stride2_elu(x.contiguous(memory_format=layout), weight, b)
-        torch.testing.assert_close(out, expected)
-        grad = torch.randn_like(expected)
-        got = torch.autograd.grad(out, inputs, grad)
-        want = torch.autograd.grad(expected, inputs, grad, retain_graph=True)
-        for a, c in zip(got, want, strict=True):
-            torch.testing.assert_close(a, c)
