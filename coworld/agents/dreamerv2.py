@@ -221,9 +221,10 @@ class DreamerV2:
         metrics["wm/kl_loss"] = aux["kl_loss"].detach()
         metrics["wm/loss"] = loss.detach()
         metrics["wm/grad_norm"] = grad_norm
-        metrics["wm/post_entropy"] = self.world_model.rssm.dist(post).entropy().detach().mean()
-        metrics["wm/prior_entropy"] = self.world_model.rssm.dist(prior).entropy().detach().mean()
-        metrics["wm/reward_pred"] = self.world_model.reward_head(aux["feat"].detach()).mean.detach().mean()
+        with torch.no_grad():
+            metrics["wm/post_entropy"] = self.world_model.rssm.dist(post).entropy().mean()
+            metrics["wm/prior_entropy"] = self.world_model.rssm.dist(prior).entropy().mean()
+            metrics["wm/reward_pred"] = aux["reward_pred"].mean()  # the prediction the loss was taken of
         return _to_floats(metrics), {key: value.detach() for key, value in post.items()}
 
     def train_actor_critic(

@@ -143,7 +143,8 @@ class WorldModel(nn.Module):
         Returns ``(terms, aux)``. ``terms`` holds unreduced ``(B, T)`` tensors: ``'image'``, ``'reward'``,
         ``'discount'`` (only with ``pred_discount``) negative log-likelihoods and ``'kl'``, the balanced KL before
         free nats. ``aux`` holds ``'post'``, ``'prior'`` (states, batch ``(B, T)``), ``'embed' (B, T, E)``,
-        ``'feat' (B, T, F)``, ``'kl_loss'`` (the scalar KL loss after balancing and free nats) and ``'loss'``::
+        ``'feat' (B, T, F)``, ``'reward_pred' (B, T)`` (the reward head's mean, detached), ``'kl_loss'`` (the scalar KL
+        loss after balancing and free nats) and ``'loss'``::
 
             loss = image_scale * mean(image) + reward_scale * mean(reward)
                    + discount_scale * mean(discount) + kl_scale * kl_loss
@@ -153,10 +154,11 @@ class WorldModel(nn.Module):
         phases = preprocess_phases(batch["image"])  # the encoder's input and the decoder's target
         post, prior, embed = self._observe(phases, batch, None)
         feat = self.features(post)
+        reward = self.reward_head(feat)
         terms: dict[str, Tensor] = {
             # A sum over pixels: the 2 x 2 phases give the loss of the whole images, without interleaving them.
             "image": image_loss(self.decoder.phases(feat).float(), phases),
-            "reward": reward_loss(self.reward_head(feat), batch["reward"].float()),
+            "reward": reward_loss(reward, batch["reward"].float()),
         }
         if self.discount_head is not None:
             continuation = 1.0 - batch["is_terminal"].float()
@@ -171,4 +173,5 @@ class WorldModel(nn.Module):
             loss = loss + cfg.discount_scale * terms["discount"].mean()
         loss = loss + cfg.kl_scale * kl_loss
         aux = {"post": post, "prior": prior, "embed": embed, "feat": feat, "kl_loss": kl_loss, "loss": loss}
+        aux["reward_pred"] = reward.mean.detach()
         return terms, aux
