@@ -172,9 +172,16 @@ def depth_to_space(phases: Tensor) -> Tensor:
     The result is channels last in memory (a plain strided copy, faster than ``pixel_shuffle`` here, when
     ``phases`` is channels last too).
     """
+    grid = _pixel_grid(phases)
+    n, rows, _, cols, _, channels = grid.shape
+    return grid.reshape(n, 2 * rows, 2 * cols, channels).permute(0, 3, 1, 2)
+
+
+def _pixel_grid(phases: Tensor) -> Tensor:
+    """The phases ``(N, 4 C, rows, cols)`` (:func:`space_to_depth`'s order) as a view ``(N, rows, 2, cols, 2, C)``
+    indexed ``(q, p, r, s, c)``: pixel ``(2q + p, 2r + s)`` of the interleaved image, to copy into one."""
     n, channels, rows, cols = phases.shape
-    out = phases.permute(0, 2, 3, 1).reshape(n, rows, cols, 2, 2, channels // 4).transpose(2, 3)
-    return out.reshape(n, 2 * rows, 2 * cols, channels // 4).permute(0, 3, 1, 2)
+    return phases.permute(0, 2, 3, 1).reshape(n, rows, cols, 2, 2, channels // 4).transpose(2, 3)
 
 
 def conv_transpose_stride2(x: Tensor, weight: Tensor, bias: Tensor | None) -> Tensor:
@@ -276,15 +283,12 @@ def _transposed_input_grad(grad: Tensor, weight: Tensor, size: torch.Size) -> Te
     if kernel % 2 or min(grad.shape[-2:]) < 2:  # odd sizes, or a 1 x 1 input (a matrix product): pad afterwards
         full = conv_transpose_stride2(grad, weight, None)
         return F.pad(full, (0, size[1] - full.shape[-1], 0, size[0] - full.shape[-2]))
-    phases = stride2_phases(grad, weight, None)  # (N, 4 C, rows, cols): phase (p, s) of channel c is (p, s, c)
-    n, _, rows, cols = phases.shape
-    channels = weight.shape[1]
-    height, width = 2 * (grad.shape[-2] - 1) + kernel, 2 * (grad.shape[-1] - 1) + kernel  # = 2 rows, 2 cols
-    out = phases.new_empty(n, size[0], size[1], channels)  # channels last
-    source = phases.permute(0, 2, 3, 1).reshape(n, rows, cols, 2, 2, channels).transpose(2, 3)  # (n, q, p, r, s, c)
-    out[:, :height, :width].view(n, rows, 2, cols, 2, channels).copy_(source)
-    out[:, height:].zero_()
-    out[:, :height, width:].zero_()
+    grid = _pixel_grid(stride2_phases(grad, weight, None))  # an even kernel: the whole grid is the result
+    n, rows, _, cols, _, channels = grid.shape
+    out = grid.new_empty(n, size[0], size[1], channels)  # channels last
+    out[:, : 2 * rows, : 2 * cols].view(grid.shape).copy_(grid)
+    out[:, 2 * rows :].zero_()
+    out[:, : 2 * rows, 2 * cols :].zero_()
     return out.permute(0, 3, 1, 2)
 
 
