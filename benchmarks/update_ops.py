@@ -9,8 +9,8 @@ Rows:
 - ``log_softmax``: the classes-first (log-)softmax of :mod:`coworld.models.distributions` against the plain one
   and against the transposed copy it replaced, at the RSSM posterior's sizes in batches of 8 and 16 sequences and
   of 64 and 512 states, forward and backward;
-- ``ELU``: :class:`coworld.models.networks.ELU` / ``ConvELU`` (PyTorch's forward, the backward from the output)
-  against ``F.elu`` at an imagination step's hidden layer, the heads' on a whole imagined trajectory and a conv
+- ``ELU``: :class:`coworld.models.networks.ELU` (PyTorch's forward, above its threshold the backward from the
+  output) against ``F.elu`` at an imagination step's hidden layer, the heads' on a whole imagined trajectory and a conv
   layer's;
 - ``encoder layer 2 input gradient``: its phases interleaved straight into the padded gradient against the
   transposed convolution then ``F.pad``;
@@ -34,7 +34,6 @@ from coworld.config import make_config
 from coworld.models.distributions import exponential_noise, log_softmax
 from coworld.models.networks import (
     ELU,
-    ConvELU,
     _transposed_input_grad,
     conv_transpose_stride2,
     depth_to_space,
@@ -109,10 +108,9 @@ def main() -> None:
         if x.ndim == 4:
             x = x.detach().contiguous(memory_format=torch.channels_last).requires_grad_()
         grad = torch.randn_like(x)
-        module = ConvELU() if x.ndim == 4 else ELU()
 
-        def ours(x: torch.Tensor = x, grad: torch.Tensor = grad, module: torch.nn.Module = module) -> None:
-            torch.autograd.grad(module(x), x, grad)
+        def ours(x: torch.Tensor = x, grad: torch.Tensor = grad) -> None:
+            torch.autograd.grad(ELU()(x), x, grad)
 
         def plain(x: torch.Tensor = x, grad: torch.Tensor = grad) -> None:
             torch.autograd.grad(torch.nn.functional.elu(x), x, grad)

@@ -27,7 +27,6 @@ from coworld.errors import ConfigError, CoworldError
 
 __all__ = [
     "ConvDecoder",
-    "ConvELU",
     "ELU",
     "ConvEncoder",
     "LayerNormGRUCell",
@@ -98,14 +97,6 @@ class _EluKeepingOutput(torch.autograd.Function):
         return torch.ops.aten.elu_backward(grad, 1.0, 1, 1, True, out)
 
 
-class ConvELU(nn.Module):
-    """``nn.ELU()`` for the conv stacks' large activations: the same function and gradient (up to float rounding),
-    its backward from the output (:class:`_EluKeepingOutput`)."""
-
-    def forward(self, x: Tensor) -> Tensor:
-        return _EluKeepingOutput.apply(x)
-
-
 _ELU_KEEPING_OUTPUT_MIN = 65536
 """From this many numbers up :class:`ELU` runs as :class:`_EluKeepingOutput`; below, a plain ``F.elu`` call costs
 less than the custom function's own overhead (forward and backward 0.88x at 512 x 64, 1.06x at 5632 x 64;
@@ -113,10 +104,10 @@ benchmarks/update_ops.py), and the memory it saves is small."""
 
 
 class ELU(nn.Module):
-    """``nn.ELU()`` for the MLPs and the RSSM: from :data:`_ELU_KEEPING_OUTPUT_MIN` numbers up (the heads over a
-    whole imagined trajectory; at the paper's sizes every imagination step too), :class:`_EluKeepingOutput`, which
-    leaves one tensor per layer for the backward where ``nn.ELU`` and the next layer keep two; a plain ``F.elu``
-    below that."""
+    """``nn.ELU()`` for the conv stacks, the MLPs and the RSSM: from :data:`_ELU_KEEPING_OUTPUT_MIN` numbers up (a
+    training batch's conv activations, the heads over a whole imagined trajectory; at the paper's sizes every
+    imagination step too), :class:`_EluKeepingOutput`, which leaves one tensor per layer for the backward where
+    ``nn.ELU`` and the next layer keep two; a plain ``F.elu`` below that."""
 
     def forward(self, x: Tensor) -> Tensor:
         if x.numel() >= _ELU_KEEPING_OUTPUT_MIN:
@@ -307,7 +298,7 @@ class ConvEncoder(nn.Module):
         in_channels = channels
         for i in range(4):
             out_channels = depth * 2**i
-            layers += [nn.Conv2d(in_channels, out_channels, kernel_size=4, stride=2), ConvELU()]
+            layers += [nn.Conv2d(in_channels, out_channels, kernel_size=4, stride=2), ELU()]
             in_channels = out_channels
         self.net = nn.Sequential(*layers)
         self.embed_size = in_channels * 2 * 2
@@ -356,7 +347,7 @@ class ConvDecoder(nn.Module):
             out_channels = channels if last else depth * 2 ** (len(kernels) - i - 2)
             layers.append(nn.ConvTranspose2d(in_channels, out_channels, kernel_size=kernel, stride=2))
             if not last:
-                layers.append(ConvELU())
+                layers.append(ELU())
             in_channels = out_channels
         self.net = nn.Sequential(*layers)
         glorot_init(self)
