@@ -224,7 +224,7 @@ class DreamerV2:
         with torch.no_grad():
             metrics["wm/post_entropy"] = self.world_model.rssm.dist(post).entropy().mean()
             metrics["wm/prior_entropy"] = self.world_model.rssm.dist(prior).entropy().mean()
-            metrics["wm/reward_pred"] = aux["reward_pred"].mean()  # the prediction the loss was taken of
+            metrics["wm/reward_pred"] = aux["reward_head"].mean.mean()  # the prediction the loss was taken of
         return _to_floats(metrics), {key: value.detach() for key, value in post.items()}
 
     def train_actor_critic(

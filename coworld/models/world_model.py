@@ -143,8 +143,8 @@ class WorldModel(nn.Module):
         Returns ``(terms, aux)``. ``terms`` holds unreduced ``(B, T)`` tensors: ``'image'``, ``'reward'``,
         ``'discount'`` (only with ``pred_discount``) negative log-likelihoods and ``'kl'``, the balanced KL before
         free nats. ``aux`` holds ``'post'``, ``'prior'`` (states, batch ``(B, T)``), ``'embed' (B, T, E)``,
-        ``'feat' (B, T, F)``, ``'reward_pred' (B, T)`` (the reward head's mean, detached), ``'kl_loss'`` (the scalar KL
-        loss after balancing and free nats) and ``'loss'``::
+        ``'feat' (B, T, F)``, ``'reward_head'`` (the reward head's distribution over ``(B, T)``), ``'kl_loss'`` (the
+        scalar KL loss after balancing and free nats) and ``'loss'``::
 
             loss = image_scale * mean(image) + reward_scale * mean(reward)
                    + discount_scale * mean(discount) + kl_scale * kl_loss
@@ -173,5 +173,5 @@ class WorldModel(nn.Module):
             loss = loss + cfg.discount_scale * terms["discount"].mean()
         loss = loss + cfg.kl_scale * kl_loss
         aux = {"post": post, "prior": prior, "embed": embed, "feat": feat, "kl_loss": kl_loss, "loss": loss}
-        aux["reward_pred"] = reward.mean.detach()
+        aux["reward_head"] = reward
         return terms, aux
