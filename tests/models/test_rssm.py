@@ -78,7 +78,7 @@ def test_observe_is_obs_step_at_every_step_through_resets(tiny: Config, given: b
     embed, action = torch.randn(batch, length, 10), torch.randn(batch, length, 3)
     is_first = torch.zeros(batch, length, dtype=torch.bool)
     is_first[1, 3] = is_first[2, 5] = True
-    is_first[0, 0] = not given  # with a start state, every sequence continues from it but the first, or none
+    is_first[0, 0] = not given  # with a start state every sequence continues from it; without, sequence 0 starts
     start = {key: torch.randn_like(value) for key, value in rssm.initial(batch).items()} if given else None
     torch.manual_seed(0)
     post, prior = rssm.observe(embed, action, is_first, start)
