@@ -34,7 +34,8 @@ class _HalfSquaredError(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx: Any, pred: Tensor, target: Tensor) -> Tensor:
-        diff = pred - target
+        # Raw uint8 pixels are scaled as preprocess_image does, in the subtraction's own pass: pred - (t / 255 - 0.5).
+        diff = torch.sub(pred, target, alpha=1 / 255).add_(0.5) if target.dtype == torch.uint8 else pred - target
         ctx.save_for_backward(diff)
         return 0.5 * torch.linalg.vector_norm(diff, dim=(-3, -2, -1)).square()
 
@@ -49,13 +50,13 @@ def image_loss(pred: UnitGaussian | Tensor, target: Tensor) -> Tensor:
     """Image negative log-likelihood under a unit-variance Gaussian: ``0.5 * sum_{C,H,W} (pred - target)^2``.
 
     ``pred`` is the decoder's mean image (or its :class:`UnitGaussian`), ``(B, T, C, H, W)``; ``target`` the
-    observed image scaled to ``[-0.5, 0.5]``, same shape (or both as their 2 x 2 phases, ``(B, T, 4 C, H / 2,
-    W / 2)``: the sum is the same). Returns ``(B, T)``; the constant ``0.5 * log(2 pi)`` per pixel is dropped.
-    (``UnitGaussian.log_prob``'s value, computed in one pass over the pixels each way instead of five: images are
-    the largest tensors of a world-model update.)
+    observed image scaled to ``[-0.5, 0.5]``, or its uint8 pixels (scaled here the same way, in the subtraction),
+    same shape (or both as their phases, e.g. ``(B, T, 16 C, H / 4, W / 4)``: the sum is the same). Returns
+    ``(B, T)``; the constant ``0.5 * log(2 pi)`` per pixel is dropped. (``UnitGaussian.log_prob``'s value, computed
+    in one pass over the pixels each way instead of five: images are the largest tensors of a world-model update.)
     """
     mean = pred.mean if isinstance(pred, UnitGaussian) else pred
-    return _HalfSquaredError.apply(mean.float(), target.float())
+    return _HalfSquaredError.apply(mean.float(), target if target.dtype == torch.uint8 else target.float())
 
 
 def reward_loss(pred: UnitGaussian | TwoHotSymlog | Tensor, target: Tensor) -> Tensor:

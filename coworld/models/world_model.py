@@ -39,8 +39,8 @@ def preprocess_phases(image: Tensor) -> Tensor:
     """uint8 ``(..., H, W, C)`` to the float32 2 x 2 phases ``(..., 4 C, H / 2, W / 2)`` in ``[-0.5, 0.5]``.
 
     :func:`~coworld.models.networks.space_to_depth` of :func:`preprocess_image`'s values (channels last in
-    memory): the world model's loss feeds them to :meth:`ConvEncoder.from_phases` and compares them with
-    :meth:`ConvDecoder.phases`. The rearrangement runs on the uint8 bytes, before the one float copy.
+    memory), which :meth:`ConvEncoder.from_phases` takes. The rearrangement runs on the uint8 bytes, before the one
+    float copy.
     """
     return space_to_depth(image).to(torch.float32).div_(255.0).sub_(0.5).movedim(-1, -3)
 
@@ -132,7 +132,8 @@ class WorldModel(nn.Module):
         return self._observe(preprocess_phases(batch["image"]), batch, state)
 
     def _observe(self, phases: Tensor, batch: dict[str, Tensor], state: State | None) -> tuple[State, State, Tensor]:
-        """:meth:`observe` from images already preprocessed into phases (:func:`preprocess_phases`)."""
+        """:meth:`observe` from images already rearranged into phases (:func:`preprocess_phases`, or the uint8
+        pixels' phases as channels first, which :meth:`ConvEncoder.from_phases` scales in its first layer)."""
         embed = self.encoder.from_phases(phases)
         post, prior = self.rssm.observe(embed, batch["action"], batch["is_first"], state)
         return post, prior, embed
@@ -151,13 +152,14 @@ class WorldModel(nn.Module):
         """
         cfg = self.config
         batch_size, length = batch["action"].shape[:2]
-        phases = preprocess_phases(batch["image"])  # the encoder's input and the decoder's target
-        post, prior, embed = self._observe(phases, batch, None)
+        pixels = space_to_depth(batch["image"])  # uint8 2 x 2 phases: the encoder's input
+        post, prior, embed = self._observe(pixels.movedim(-1, -3), batch, None)
         feat = self.features(post)
         reward = self.reward_head(feat)
+        # A sum over pixels: the 4 x 4 phases give the loss of the whole images, without interleaving them.
+        target = space_to_depth(pixels).movedim(-1, -3)
         terms: dict[str, Tensor] = {
-            # A sum over pixels: the 2 x 2 phases give the loss of the whole images, without interleaving them.
-            "image": image_loss(self.decoder.phases(feat).float(), phases),
+            "image": image_loss(self.decoder.phases4(feat).float(), target),
             "reward": reward_loss(reward, batch["reward"].float()),
         }
         if self.discount_head is not None:

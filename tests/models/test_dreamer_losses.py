@@ -87,6 +87,12 @@ def test_image_reward_discount_terms() -> None:
     want = torch.autograd.grad((0.5 * ((pred32 - target32) ** 2).sum((2, 3, 4)) * weight).sum(), (pred32, target32))
     for a, b in zip(got, want, strict=True):
         torch.testing.assert_close(a, b)
+    # A uint8 target holds pixels, scaled as preprocess_image scales them.
+    pixels = torch.randint(0, 256, target.shape, dtype=torch.uint8)
+    scaled = pixels.float() / 255.0 - 0.5
+    torch.testing.assert_close(image_loss(pred, pixels), image_loss(pred, scaled))
+    got = torch.autograd.grad((image_loss(pred32, pixels) * weight).sum(), pred32)
+    torch.testing.assert_close(got[0], torch.autograd.grad((image_loss(pred32, scaled) * weight).sum(), pred32)[0])
     mean, reward = torch.randn(2, 3), torch.randn(2, 3)
     torch.testing.assert_close(reward_loss(mean, reward), 0.5 * (mean - reward) ** 2)
     torch.testing.assert_close(reward_loss(UnitGaussian(mean), reward), 0.5 * (mean - reward) ** 2)

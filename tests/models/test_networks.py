@@ -18,6 +18,7 @@ from coworld.models.networks import (
     depth_to_space,
     frozen_parameters,
     space_to_depth,
+    stride2_phases4,
 )
 from coworld.models.world_model import preprocess_image, preprocess_phases
 
@@ -125,11 +126,46 @@ def test_encoder_from_phases_and_decoder_phases_match_the_image_paths(tiny: Conf
     torch.testing.assert_close(got_grads[0], space_to_depth(want_grads[0].movedim(-3, -1)).movedim(-1, -3))
     for a, b in zip(got_grads[1:], want_grads[1:], strict=True):
         torch.testing.assert_close(a, b)
+    # The uint8 pixels' phases: the first layer scales them in its weights and bias; same value and weight gradients.
+    raw = encoder.from_phases(space_to_depth(image).movedim(-1, -3))
+    exact = encoder(image.movedim(-1, -3).double() / 255.0 - 0.5)  # scaled in float64, as the raw path is
+    torch.testing.assert_close(raw, exact)
+    for a, b in zip(torch.autograd.grad(raw, params, grad), torch.autograd.grad(exact, params, grad), strict=True):
+        torch.testing.assert_close(a, b)
     decoder = ConvDecoder(feat_size=17, channels=3, depth=depth).double()
-    feat = torch.randn(2, 3, 17, dtype=torch.float64)
-    out = decoder.phases(feat)
-    assert out.shape == (2, 3, 12, 32, 32)
-    torch.testing.assert_close(out, space_to_depth(decoder(feat).movedim(-3, -1)).movedim(-1, -3))
+    feat = torch.randn(2, 3, 17, dtype=torch.float64, requires_grad=True)
+    # The plain path: nn.ConvTranspose2d layers one after another.
+    plain_image = decoder.net(decoder.linear(feat).reshape(6, 32 * depth, 1, 1)).reshape(2, 3, 3, 64, 64)
+    torch.testing.assert_close(decoder(feat), plain_image)
+    out = decoder.phases4(feat)
+    assert out.shape == (2, 3, 48, 16, 16)
+    torch.testing.assert_close(out, space_to_depth(space_to_depth(plain_image.movedim(-3, -1))).movedim(-1, -3))
+    grad = torch.randn_like(out)
+    got_grads = torch.autograd.grad(out, [feat, *decoder.parameters()], grad)
+    plain = decoder.net(decoder.linear(feat).reshape(6, 32 * depth, 1, 1)).reshape(2, 3, 3, 64, 64)
+    plain_grad = depth_to_space(depth_to_space(grad.reshape(6, 48, 16, 16))).reshape(plain.shape)
+    want_grads = torch.autograd.grad(plain, [feat, *decoder.parameters()], plain_grad)
+    for a, b in zip(got_grads, want_grads, strict=True):
+        torch.testing.assert_close(a, b)
+
+
+@pytest.mark.parametrize(("rows", "cols", "bias"), [(15, 15, True), (4, 7, False), (1, 2, True)])
+def test_stride2_phases4_is_the_transposed_convolution_from_phases_to_phases(rows: int, cols: int, bias: bool) -> None:
+    x = torch.randn(2, 3, 2 * rows, 2 * cols, dtype=torch.float64, requires_grad=True)
+    weight = torch.randn(3, 5, 6, 6, dtype=torch.float64, requires_grad=True)
+    b = torch.randn(5, dtype=torch.float64, requires_grad=True) if bias else None
+    inputs = [x, weight] + ([b] if bias else [])
+    phases = x.reshape(2, 3, rows, 2, cols, 2).permute(0, 3, 5, 1, 2, 4).reshape(2, 12, rows, cols)  # (p, s, c)
+    got = stride2_phases4(phases.contiguous(memory_format=torch.channels_last), weight, b)
+    want = torch.nn.functional.conv_transpose2d(x, weight, b, stride=2)
+    assert got.shape == (2, 80, rows + 1, cols + 1) and got.is_contiguous(memory_format=torch.channels_last)
+    torch.testing.assert_close(got, space_to_depth(space_to_depth(want.movedim(1, -1))).movedim(-1, 1))
+    grad = torch.randn_like(got)
+    want_grad = depth_to_space(depth_to_space(grad))
+    for a, c in zip(torch.autograd.grad(got, inputs, grad), torch.autograd.grad(want, inputs, want_grad), strict=True):
+        torch.testing.assert_close(a, c)
+    with pytest.raises(ValueError, match="kernel-6"):
+        stride2_phases4(phases, weight[..., :5, :5], b)
 
 
 @pytest.mark.parametrize(("size", "bias"), [(31, True), (14, True), (6, False), (9, True), (5, False)])
