@@ -16,7 +16,9 @@ Rows:
   transposed convolution then ``F.pad``;
 - ``adamw``: the world model's AdamW step at the tiny preset, fused against PyTorch's default (``foreach``);
 - ``decoder layer 2`` / ``3``: :func:`coworld.models.networks.conv_transpose_stride2` forward and backward, its
-  backward PyTorch's own transposed-convolution backward against the phase convolution's autograd, at batch 512.
+  backward PyTorch's own transposed-convolution backward against the phase convolution's autograd, at batch 512;
+- ``decoder layer 4``: :func:`coworld.models.networks.stride2_phases4` (2 x 2 phases in, 4 x 4 phases out) against
+  :func:`~coworld.models.networks.stride2_phases` of the interleaved input, forward and backward, at batch 512.
 
 Each cell is the median of ``--repeats`` timings (thread CPU time) after 3 warm-up calls.
 """
@@ -38,6 +40,7 @@ from coworld.models.networks import (
     conv_transpose_stride2,
     depth_to_space,
     stride2_phases,
+    stride2_phases4,
 )
 from coworld.models.world_model import WorldModel
 
@@ -161,6 +164,24 @@ def main() -> None:
         row(
             f"decoder layer {layer}, forward + backward", median_us(ours, args.repeats), median_us(theirs, args.repeats)
         )
+
+    # The decoder's last layer (8 -> 3 channels, 30 x 30 -> 64 x 64): from the layer before's 2 x 2 phases to the
+    # image's 4 x 4 phases, against the 2 x 2 output phases of the interleaved input it took before.
+    weight = torch.randn(8, 3, 6, 6, requires_grad=True)
+    bias = torch.randn(3, requires_grad=True)
+    x = torch.randn(512, 8, 30, 30).contiguous(memory_format=torch.channels_last).requires_grad_()
+    x_phases = x.detach().reshape(512, 8, 15, 2, 15, 2).permute(0, 3, 5, 1, 2, 4).reshape(512, 32, 15, 15)
+    x_phases = x_phases.contiguous(memory_format=torch.channels_last).requires_grad_()
+    grad4 = torch.randn(512, 48, 16, 16).contiguous(memory_format=torch.channels_last)
+    grad2 = torch.randn(512, 12, 32, 32).contiguous(memory_format=torch.channels_last)
+    row(
+        "decoder layer 4, forward + backward",
+        median_us(
+            lambda: torch.autograd.grad(stride2_phases4(x_phases, weight, bias), [x_phases, weight, bias], grad4),
+            args.repeats,
+        ),
+        median_us(lambda: torch.autograd.grad(stride2_phases(x, weight, bias), [x, weight, bias], grad2), args.repeats),
+    )
 
 
 if __name__ == "__main__":

@@ -165,8 +165,8 @@ def stride2_phases4(phases: Tensor, weight: Tensor, bias: Tensor | None) -> Tens
     Output pixel ``4a + r`` (``r < 4``) of the transposed convolution sees input pixel ``2b + q`` (``q < 2``) through
     kernel tap ``4 (a - b) + r - 2q``, a tap only for ``b = a - 1`` and ``b = a``: a 2 x 2 convolution (padding 1) of
     the phases, whose weight holds each tap where an ``(r, q)`` pair uses it and zeros elsewhere (9 of 16 entries;
-    the 1.8x multiply-adds run about 1.3x faster, forward and backward, than :func:`stride2_phases` at the decoder's
-    64 x 64 output from 8 channels, benchmarks/update_ops.py).
+    with 1.8x the multiply-adds it runs 1.24x faster, forward and backward, than :func:`stride2_phases` of the
+    interleaved input at the decoder's 64 x 64 output from 8 channels, benchmarks/update_ops.py).
 
     Shapes: ``phases (N, 4 C_in, H, W)`` in :func:`space_to_depth`'s channel order, as :func:`stride2_phases` makes
     them, ``weight (C_in, C_out, 6, 6)`` (``nn.ConvTranspose2d``'s layout), ``bias (C_out,)``; returns
