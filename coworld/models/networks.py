@@ -130,9 +130,14 @@ def space_to_depth(x: Tensor) -> Tensor:
     """
     *batch, height, width, channels = x.shape
     rows = x.reshape(-1, height // 2, 2, width // 2, 2 * channels)  # (M, q, p, r, [s, c])
-    aligned = rows.storage_offset() % 2 == 0 and rows.stride(-1) == 1 and all(n % 2 == 0 for n in rows.stride()[:-1])
-    if x.element_size() == 1 and aligned:  # bytes (uint8 images) move as half as many 2-byte words: [s, c] is 2 C
-        rows = rows.view(torch.int16)
+    for word, dtype in ((8, torch.int64), (4, torch.int32), (2, torch.int16)):
+        # Each run [s, c] moves as the widest words that tile it (a uint8 image's 6 bytes as three 2-byte words, its
+        # phases' 24 as three 8-byte ones), where every row starts on a word.
+        ratio = word // x.element_size()
+        tiled = (*rows.stride()[:-1], rows.shape[-1], rows.storage_offset())
+        if ratio > 1 and rows.stride(-1) == 1 and all(n % ratio == 0 for n in tiled):
+            rows = rows.view(dtype)
+            break
     out = rows.new_empty(rows.shape[0], height // 2, width // 2, 2, rows.shape[-1])  # (M, q, r, p, [s, c])
     for p in range(2):
         out[:, :, :, p] = rows[:, :, p]

@@ -91,20 +91,28 @@ def test_frozen_parameters_lets_gradient_through_but_not_into_weights() -> None:
     assert all(p.requires_grad for p in mlp.parameters())
 
 
-def test_space_to_depth_puts_each_2x2_phase_in_channels_and_depth_to_space_undoes_it() -> None:
-    image = torch.randint(0, 256, (2, 3, 6, 4, 3), dtype=torch.uint8)
+# Channels and dtypes whose runs move as 2-, 8- and 4-byte words, and as the elements themselves.
+@pytest.mark.parametrize(
+    ("channels", "dtype"), [(3, torch.uint8), (12, torch.uint8), (1, torch.float32), (3, torch.int64)]
+)
+def test_space_to_depth_puts_each_2x2_phase_in_channels_and_depth_to_space_undoes_it(
+    channels: int, dtype: torch.dtype
+) -> None:
+    image = torch.randint(0, 256, (2, 3, 6, 4, channels)).to(dtype)
     phases = space_to_depth(image)
-    assert phases.shape == (2, 3, 3, 2, 12) and phases.dtype == torch.uint8
+    assert phases.shape == (2, 3, 3, 2, 4 * channels) and phases.dtype == dtype
     for p in range(2):
         for s in range(2):
-            channels = slice(6 * p + 3 * s, 6 * p + 3 * s + 3)
-            assert torch.equal(phases[..., channels], image[..., p::2, s::2, :])
-    flat = phases.reshape(6, 3, 2, 12).permute(0, 3, 1, 2)  # channels first
-    assert torch.equal(depth_to_space(flat).permute(0, 2, 3, 1), image.reshape(6, 6, 4, 3))
-    # A view that starts at an odd byte is rearranged the same.
-    offset = torch.randint(0, 256, (1 + image.numel(),), dtype=torch.uint8)[1:].view(image.shape)
+            first = (2 * p + s) * channels
+            assert torch.equal(phases[..., first : first + channels], image[..., p::2, s::2, :])
+    flat = phases.reshape(6, 3, 2, 4 * channels).permute(0, 3, 1, 2)  # channels first
+    assert torch.equal(depth_to_space(flat).permute(0, 2, 3, 1), image.reshape(6, 6, 4, channels))
+    # A view that starts off a word boundary is rearranged the same.
+    offset = torch.randint(0, 256, (1 + image.numel(),)).to(dtype)[1:].view(image.shape)
     assert offset.storage_offset() == 1
     assert torch.equal(space_to_depth(offset), space_to_depth(offset.clone()))
+    if channels != 3 or dtype != torch.uint8:
+        return
     # The world model's two preprocessings hold the same numbers.
     expected = space_to_depth(preprocess_image(image).movedim(-3, -1)).movedim(-1, -3)
     assert torch.equal(preprocess_phases(image), expected)
