@@ -34,7 +34,7 @@ class _HalfSquaredError(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx: Any, pred: Tensor, target: Tensor) -> Tensor:
-        # Raw uint8 pixels are scaled as preprocess_image does, in the subtraction's own pass: pred - (t / 255 - 0.5).
+        # Raw uint8 pixels are scaled as preprocess_image does, in the subtraction: pred - (t / 255 - 0.5).
         diff = torch.sub(pred, target, alpha=1 / 255).add_(0.5) if target.dtype == torch.uint8 else pred - target
         ctx.save_for_backward(diff)
         return 0.5 * torch.linalg.vector_norm(diff, dim=(-3, -2, -1)).square()
@@ -42,8 +42,11 @@ class _HalfSquaredError(torch.autograd.Function):
     @staticmethod
     def backward(ctx: Any, grad: Tensor) -> tuple[Tensor | None, Tensor | None]:
         (diff,) = ctx.saved_tensors
-        grad_pred = diff * grad[..., None, None, None]
-        return grad_pred, -grad_pred if ctx.needs_input_grad[1] else None
+        scale = grad[..., None, None, None]
+        if ctx.needs_input_grad[1]:
+            grad_pred = diff * scale
+            return grad_pred, -grad_pred
+        return diff.mul_(scale), None  # nothing reads the difference again: no second image-sized tensor
 
 
 def image_loss(pred: UnitGaussian | Tensor, target: Tensor) -> Tensor:
