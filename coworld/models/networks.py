@@ -374,7 +374,8 @@ class ConvEncoder(nn.Module):
 
         ``phases`` is float in ``[-0.5, 0.5]`` (:func:`~coworld.models.world_model.preprocess_phases`), or the uint8
         pixels' phases: the first layer then takes the scaling ``x / 255 - 0.5`` into its weights and bias (it pads
-        nothing, so every output sees every tap), and the input needs one float copy, not three passes.
+        nothing, so every output sees every tap), and the input needs one float copy, not three passes; the copy
+        leaves out what only the first layer's last output row and column read, which the second never reads.
         """
         batch = phases.shape[:-3]
         first = self.net[0]
@@ -383,11 +384,14 @@ class ConvEncoder(nn.Module):
         weight = first.weight.reshape(out_channels, channels, 2, 2, 2, 2).permute(0, 3, 5, 1, 2, 4)
         weight = weight.reshape(out_channels, 4 * channels, 2, 2)
         bias = first.bias
-        if phases.dtype == torch.uint8:  # conv(w, x / 255 - 0.5) = conv(w / 255, x) - 0.5 * sum(w)
+        x = phases.reshape(-1, *phases.shape[-3:])
+        if x.dtype == torch.uint8:  # conv(w, x / 255 - 0.5) = conv(w / 255, x) - 0.5 * sum(w)
             bias = bias - 0.5 * weight.sum(dim=(1, 2, 3))
             weight = weight / 255.0
-            phases = phases.to(weight.dtype)
-        out = F.conv2d(phases.reshape(-1, *phases.shape[-3:]), weight, bias)
+            # The second layer reads 30 of the first's 31 output rows and columns: its float copy leaves out the
+            # phases' last row and column, which only the 31st feeds.
+            x = x[..., :-1, :-1].to(weight.dtype, memory_format=torch.channels_last)
+        out = F.conv2d(x, weight, bias)
         for layer in self.net[1:]:
             out = conv2d_stride2(out, layer.weight, layer.bias) if isinstance(layer, nn.Conv2d) else layer(out)
         return out.reshape(*batch, self.embed_size)
