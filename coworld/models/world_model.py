@@ -129,7 +129,7 @@ class WorldModel(nn.Module):
         ``logits``/``stoch (B, T, S, K)``) and the embeddings ``(B, T, E)``. The recurrent state and the previous
         action are zeroed where ``is_first``; ``state`` (batch ``(B,)``) continues from an earlier chunk.
         """
-        return self._observe(preprocess_phases(batch["image"]), batch, state)
+        return self._observe(space_to_depth(batch["image"]).movedim(-1, -3), batch, state)
 
     def _observe(self, phases: Tensor, batch: dict[str, Tensor], state: State | None) -> tuple[State, State, Tensor]:
         """:meth:`observe` from images already rearranged into phases (:func:`preprocess_phases`, or the uint8
