@@ -34,8 +34,11 @@ class _HalfSquaredError(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx: Any, pred: Tensor, target: Tensor) -> Tensor:
-        # Raw uint8 pixels are scaled as preprocess_image does, in the subtraction: pred - (t / 255 - 0.5).
-        diff = torch.sub(pred, target, alpha=1 / 255).add_(0.5) if target.dtype == torch.uint8 else pred - target
+        if target.dtype == torch.uint8:  # pixels, scaled as preprocess_image does: pred - (t / 255 - 0.5)
+            diff = target.to(pred.dtype)  # the one new image-sized tensor; the rest runs in place on it
+            torch.sub(pred, diff, alpha=1 / 255, out=diff).add_(0.5)
+        else:
+            diff = pred - target
         ctx.save_for_backward(diff)
         return 0.5 * torch.linalg.vector_norm(diff, dim=(-3, -2, -1)).square()
 
