@@ -18,7 +18,8 @@ Rows:
 - ``decoder layer 2`` / ``3``: :func:`coworld.models.networks.conv_transpose_stride2` forward and backward, its
   backward PyTorch's own transposed-convolution backward against the phase convolution's autograd, at batch 512;
 - ``decoder layer 4``: :func:`coworld.models.networks.stride2_phases4` (2 x 2 phases in, 4 x 4 phases out) against
-  :func:`~coworld.models.networks.stride2_phases` of the interleaved input, forward and backward, at batch 512.
+  :func:`~coworld.models.networks.stride2_phases` of the interleaved input, forward and backward, at batch 512, from
+  8, 16 and 32 input channels (the decoder takes the faster: ``_PHASES4_BELOW_DEPTH``).
 
 Each cell is the median of ``--repeats`` timings (thread CPU time) after 3 warm-up calls.
 """
@@ -165,23 +166,28 @@ def main() -> None:
             f"decoder layer {layer}, forward + backward", median_us(ours, args.repeats), median_us(theirs, args.repeats)
         )
 
-    # The decoder's last layer (8 -> 3 channels, 30 x 30 -> 64 x 64): from the layer before's 2 x 2 phases to the
-    # image's 4 x 4 phases, against the 2 x 2 output phases of the interleaved input it took before.
-    weight = torch.randn(8, 3, 6, 6, requires_grad=True)
-    bias = torch.randn(3, requires_grad=True)
-    x = torch.randn(512, 8, 30, 30).contiguous(memory_format=torch.channels_last).requires_grad_()
-    x_phases = x.detach().reshape(512, 8, 15, 2, 15, 2).permute(0, 3, 5, 1, 2, 4).reshape(512, 32, 15, 15)
-    x_phases = x_phases.contiguous(memory_format=torch.channels_last).requires_grad_()
-    grad4 = torch.randn(512, 48, 16, 16).contiguous(memory_format=torch.channels_last)
-    grad2 = torch.randn(512, 12, 32, 32).contiguous(memory_format=torch.channels_last)
-    row(
-        "decoder layer 4, forward + backward",
-        median_us(
-            lambda: torch.autograd.grad(stride2_phases4(x_phases, weight, bias), [x_phases, weight, bias], grad4),
-            args.repeats,
-        ),
-        median_us(lambda: torch.autograd.grad(stride2_phases(x, weight, bias), [x, weight, bias], grad2), args.repeats),
-    )
+    # The decoder's last layer (d -> 3 channels, 30 x 30 -> 64 x 64; d = 8 at the tiny preset): from the layer
+    # before's 2 x 2 phases to the image's 4 x 4 phases, against the 2 x 2 output phases of the interleaved input.
+    for c_in in (8, 16, 32):
+        weight = torch.randn(c_in, 3, 6, 6, requires_grad=True)
+        bias = torch.randn(3, requires_grad=True)
+        x = torch.randn(512, c_in, 30, 30).contiguous(memory_format=torch.channels_last).requires_grad_()
+        x_phases = x.detach().reshape(512, c_in, 15, 2, 15, 2).permute(0, 3, 5, 1, 2, 4).reshape(512, -1, 15, 15)
+        x_phases = x_phases.contiguous(memory_format=torch.channels_last).requires_grad_()
+        grad4 = torch.randn(512, 48, 16, 16).contiguous(memory_format=torch.channels_last)
+        grad2 = torch.randn(512, 12, 32, 32).contiguous(memory_format=torch.channels_last)
+
+        def ours(w: torch.Tensor = weight, b: torch.Tensor = bias, x: torch.Tensor = x_phases, g=grad4) -> None:
+            torch.autograd.grad(stride2_phases4(x, w, b), [x, w, b], g)
+
+        def plain(w: torch.Tensor = weight, b: torch.Tensor = bias, x: torch.Tensor = x, g=grad2) -> None:
+            torch.autograd.grad(stride2_phases(x, w, b), [x, w, b], g)
+
+        row(
+            f"decoder layer 4 from {c_in} channels, fwd + bwd",
+            median_us(ours, args.repeats),
+            median_us(plain, args.repeats),
+        )
 
 
 if __name__ == "__main__":

@@ -5,7 +5,7 @@
 * :class:`ConvDecoder`: dense layer to ``32d`` channels at 1 x 1, then 4 transposed convs (kernels 5, 5, 6, 6,
   stride 2; channels ``4d, 2d, d, C``) back to 64 x 64: the mean of a unit-variance Gaussian over pixels. They
   run as :func:`conv_transpose_stride2` (the same function as ``nn.ConvTranspose2d``, 2-3x faster on a CPU); the
-  last two can stop at the image's 4 x 4 phases (:meth:`ConvDecoder.phases4`, :func:`stride2_phases4`).
+  last ones can stop at the image's phases (:meth:`ConvDecoder.phases`, :func:`stride2_phases4`).
 * :class:`MLP`: ELU multilayer perceptron used by the heads, the actor and the critic (optionally DreamerV3's
   LayerNorm + SiLU).
 * :class:`LayerNormGRUCell`: DreamerV2's GRU cell with layer normalisation and update bias -1.
@@ -169,9 +169,9 @@ def stride2_phases4(phases: Tensor, weight: Tensor, bias: Tensor | None) -> Tens
 
     Output pixel ``4a + r`` (``r < 4``) of the transposed convolution sees input pixel ``2b + q`` (``q < 2``) through
     kernel tap ``4 (a - b) + r - 2q``, a tap only for ``b = a - 1`` and ``b = a``: a 2 x 2 convolution (padding 1) of
-    the phases, whose weight holds each tap where an ``(r, q)`` pair uses it and zeros elsewhere (9 of 16 entries;
-    with 1.8x the multiply-adds it runs 1.24x faster, forward and backward, than :func:`stride2_phases` of the
-    interleaved input at the decoder's 64 x 64 output from 8 channels, benchmarks/update_ops.py).
+    the phases, whose weight holds each tap where an ``(r, q)`` pair uses it and zeros elsewhere (9 of 16 entries:
+    1.8x the multiply-adds, which pay only where oneDNN runs the narrow layer slowly; see
+    :data:`_PHASES4_BELOW_DEPTH`).
 
     Shapes: ``phases (N, 4 C_in, H, W)`` in :func:`space_to_depth`'s channel order, as :func:`stride2_phases` makes
     them, ``weight (C_in, C_out, 6, 6)`` (``nn.ConvTranspose2d``'s layout), ``bias (C_out,)``; returns
@@ -397,6 +397,13 @@ class ConvEncoder(nn.Module):
         return out.reshape(*batch, self.embed_size)
 
 
+_PHASES4_BELOW_DEPTH = 16
+"""The decoder's last layer runs as :func:`stride2_phases4` below this many input channels (its 1.8x multiply-adds
+pay where oneDNN runs the narrow layer slowly): forward and backward against :func:`stride2_phases` of the
+interleaved input at batch 512, 1.24x at 8 channels (the tiny preset), 1.08x at 16 (0.99x at batch 800) and 0.90x at
+32 (benchmarks/update_ops.py)."""
+
+
 class ConvDecoder(nn.Module):
     """Image decoder: ``(..., feat_size)`` to the mean image ``(..., C, 64, 64)``."""
 
@@ -416,21 +423,26 @@ class ConvDecoder(nn.Module):
             in_channels = out_channels
         self.net = nn.Sequential(*layers)
         glorot_init(self)
+        self.phase_levels = 2 if depth < _PHASES4_BELOW_DEPTH else 1
+        """How many times :meth:`phases` applies :func:`space_to_depth`: 2 (4 x 4 phases) where
+        :func:`stride2_phases4` is the faster last layer, else 1."""
 
     def forward(self, feat: Tensor) -> Tensor:
         """``(..., feat_size)`` -> ``(..., C, 64, 64)``."""
-        phases = self.phases4(feat)
-        image = depth_to_space(depth_to_space(phases.reshape(-1, *phases.shape[-3:])))
+        phases = self.phases(feat)
+        image = phases.reshape(-1, *phases.shape[-3:])
+        for _ in range(self.phase_levels):
+            image = depth_to_space(image)
         return image.reshape(*phases.shape[:-3], *image.shape[1:])
 
-    def phases4(self, feat: Tensor) -> Tensor:
-        """The mean image's 4 x 4 phases, :func:`space_to_depth` applied twice (channels first):
-        ``(..., feat_size)`` -> ``(..., 16 C, 16, 16)``.
+    def phases(self, feat: Tensor) -> Tensor:
+        """The mean image's phases, :func:`space_to_depth` applied :attr:`phase_levels` times (channels first):
+        ``(..., feat_size)`` -> ``(..., 4 C, 32, 32)`` or ``(..., 16 C, 16, 16)``.
 
-        The last two layers never interleave: the third stops at its output's 2 x 2 phases (:func:`stride2_phases`),
-        which the last maps straight to its own 4 x 4 phases (:func:`stride2_phases4`). A loss summed over pixels
-        compares these with the target's, so the largest tensors of the update are never rearranged (forward and
-        backward).
+        A loss summed over pixels compares these with the target's phases, so the largest tensors of the update are
+        never interleaved (forward and backward). With 4 x 4 phases the third layer stops at its output's 2 x 2
+        phases (:func:`stride2_phases`) and the last maps them straight to its own 4 x 4 phases
+        (:func:`stride2_phases4`); with 2 x 2 phases the last layer stops at its output's (:func:`stride2_phases`).
         """
         batch = feat.shape[:-1]
         out = self.linear(feat.reshape(-1, feat.shape[-1])).reshape(-1, 32 * self.depth, 1, 1)
@@ -439,8 +451,9 @@ class ConvDecoder(nn.Module):
             if isinstance(layer, nn.ConvTranspose2d):
                 out = out.contiguous(memory_format=torch.channels_last)
                 if i == last:
-                    out = stride2_phases4(out, layer.weight, layer.bias)
-                elif i == last - 2:  # its phases feed the last layer
+                    to_phases = stride2_phases4 if self.phase_levels == 2 else stride2_phases
+                    out = to_phases(out, layer.weight, layer.bias)
+                elif i == last - 2 and self.phase_levels == 2:  # its phases feed the last layer
                     out = stride2_phases(out, layer.weight, layer.bias)
                 else:
                     out = conv_transpose_stride2(out, layer.weight, layer.bias)

@@ -156,10 +156,10 @@ class WorldModel(nn.Module):
         post, prior, embed = self._observe(pixels.movedim(-1, -3), batch, None)
         feat = self.features(post)
         reward = self.reward_head(feat)
-        # A sum over pixels: the 4 x 4 phases give the loss of the whole images, without interleaving them.
-        target = space_to_depth(pixels).movedim(-1, -3)
+        # A sum over pixels: the decoder's phases give the loss of the whole images, without interleaving them.
+        target = space_to_depth(pixels) if self.decoder.phase_levels == 2 else pixels
         terms: dict[str, Tensor] = {
-            "image": image_loss(self.decoder.phases4(feat).float(), target),
+            "image": image_loss(self.decoder.phases(feat).float(), target.movedim(-1, -3)),
             "reward": reward_loss(reward, batch["reward"].float()),
         }
         if self.discount_head is not None:

@@ -118,7 +118,7 @@ def test_space_to_depth_puts_each_2x2_phase_in_channels_and_depth_to_space_undoe
     assert torch.equal(preprocess_phases(image), expected)
 
 
-def test_encoder_from_phases_and_decoder_phases_match_the_image_paths(tiny: Config) -> None:
+def test_encoder_from_phases_matches_the_image_path(tiny: Config) -> None:
     torch.manual_seed(0)
     depth = tiny.world_model.cnn_depth
     encoder = ConvEncoder(channels=3, depth=depth).double()
@@ -140,19 +140,32 @@ def test_encoder_from_phases_and_decoder_phases_match_the_image_paths(tiny: Conf
     torch.testing.assert_close(raw, exact)
     for a, b in zip(torch.autograd.grad(raw, params, grad), torch.autograd.grad(exact, params, grad), strict=True):
         torch.testing.assert_close(a, b)
+
+
+# The tiny preset's depth decodes to 4 x 4 phases, a wider decoder to 2 x 2 phases.
+@pytest.mark.parametrize(("depth", "levels"), [(8, 2), (16, 1)])
+def test_decoder_phases_match_the_plain_layers(depth: int, levels: int) -> None:
+    torch.manual_seed(0)
     decoder = ConvDecoder(feat_size=17, channels=3, depth=depth).double()
+    assert decoder.phase_levels == levels
     feat = torch.randn(2, 3, 17, dtype=torch.float64, requires_grad=True)
-    # The plain path: nn.ConvTranspose2d layers one after another.
-    plain_image = decoder.net(decoder.linear(feat).reshape(6, 32 * depth, 1, 1)).reshape(2, 3, 3, 64, 64)
-    torch.testing.assert_close(decoder(feat), plain_image)
-    out = decoder.phases4(feat)
-    assert out.shape == (2, 3, 48, 16, 16)
-    torch.testing.assert_close(out, space_to_depth(space_to_depth(plain_image.movedim(-3, -1))).movedim(-1, -3))
+
+    def plain() -> torch.Tensor:  # nn.ConvTranspose2d layers one after another
+        return decoder.net(decoder.linear(feat).reshape(6, 32 * depth, 1, 1)).reshape(2, 3, 3, 64, 64)
+
+    torch.testing.assert_close(decoder(feat), plain())
+    out = decoder.phases(feat)
+    assert out.shape == (2, 3, 3 * 4**levels, 64 // 2**levels, 64 // 2**levels)
+    want = plain().movedim(-3, -1)
+    for _ in range(levels):
+        want = space_to_depth(want)
+    torch.testing.assert_close(out, want.movedim(-1, -3))
     grad = torch.randn_like(out)
     got_grads = torch.autograd.grad(out, [feat, *decoder.parameters()], grad)
-    plain = decoder.net(decoder.linear(feat).reshape(6, 32 * depth, 1, 1)).reshape(2, 3, 3, 64, 64)
-    plain_grad = depth_to_space(depth_to_space(grad.reshape(6, 48, 16, 16))).reshape(plain.shape)
-    want_grads = torch.autograd.grad(plain, [feat, *decoder.parameters()], plain_grad)
+    plain_grad = grad.reshape(6, *out.shape[2:])
+    for _ in range(levels):
+        plain_grad = depth_to_space(plain_grad)
+    want_grads = torch.autograd.grad(plain(), [feat, *decoder.parameters()], plain_grad.reshape(2, 3, 3, 64, 64))
     for a, b in zip(got_grads, want_grads, strict=True):
         torch.testing.assert_close(a, b)
 
