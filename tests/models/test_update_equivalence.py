@@ -118,9 +118,11 @@ def _grads(loss: Tensor, params: list[torch.nn.Parameter]) -> list[Tensor]:
     return list(torch.autograd.grad(loss, params, allow_unused=False))
 
 
-@pytest.mark.parametrize("seed", [0, 1, 2, 3])
-def test_update_matches_the_reference_step(tiny: Config, seed: int) -> None:
-    cfg = dataclasses.replace(tiny, world_model=dataclasses.replace(tiny.world_model, free_nats=0.0))
+# The tiny preset's conv depth (its decoder ends in 4 x 4 phases) and a wider one (2 x 2 phases).
+@pytest.mark.parametrize(("seed", "cnn_depth"), [(0, None), (1, None), (2, None), (3, None), (0, 16)])
+def test_update_matches_the_reference_step(tiny: Config, seed: int, cnn_depth: int | None) -> None:
+    depth = tiny.world_model.cnn_depth if cnn_depth is None else cnn_depth
+    cfg = dataclasses.replace(tiny, world_model=dataclasses.replace(tiny.world_model, free_nats=0.0, cnn_depth=depth))
     model = WorldModel(config=cfg.world_model, action_size=ACTION_SIZE)
     ac = ActorCritic(config=cfg.actor_critic, feat_size=model.feat_size, action_size=ACTION_SIZE)
     batch = random_batch(batch=3, length=6)
