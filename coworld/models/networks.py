@@ -377,7 +377,7 @@ class ConvEncoder(nn.Module):
         nothing, so every output sees every tap), and the input needs one float copy, not three passes. (Leaving
         out of that copy the phases' last row and column, which feed only the first layer's 31st output row and
         column, which the second layer never reads, saved 6% of the first layer's work but raised the peak memory
-        at the authors' sizes by 1.2 GiB with tcmalloc: a float tensor of another size than the loss's target.)
+        with tcmalloc: at the authors' widths on batch 40 x 50, 3.0 against 2.5 GiB.)
         """
         batch = phases.shape[:-3]
         first = self.net[0]

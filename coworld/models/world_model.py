@@ -42,7 +42,12 @@ def preprocess_phases(image: Tensor) -> Tensor:
     memory), which :meth:`ConvEncoder.from_phases` takes. The rearrangement runs on the uint8 bytes, before the one
     float copy.
     """
-    return space_to_depth(image).to(torch.float32).div_(255.0).sub_(0.5).movedim(-1, -3)
+    return _unit_range(space_to_depth(image))
+
+
+def _unit_range(pixels: Tensor) -> Tensor:
+    """uint8 ``(..., H, W, C)`` to float32 ``(..., C, H, W)`` in ``[-0.5, 0.5]``, channels last in memory."""
+    return pixels.to(torch.float32).div_(255.0).sub_(0.5).movedim(-1, -3)
 
 
 class ScalarHead(nn.Module):
@@ -152,14 +157,17 @@ class WorldModel(nn.Module):
         """
         cfg = self.config
         batch_size, length = batch["action"].shape[:2]
-        pixels = space_to_depth(batch["image"])  # uint8 2 x 2 phases: the encoder's input
-        post, prior, embed = self._observe(pixels.movedim(-1, -3), batch, None)
+        # A sum over pixels: the decoder's phases give the loss of the whole images, without interleaving them.
+        pixels = space_to_depth(batch["image"])  # uint8 2 x 2 phases
+        if self.decoder.phase_levels == 2:  # narrow nets: the encoder scales the bytes, the target is rearranged
+            encoder_input, target = pixels.movedim(-1, -3), space_to_depth(pixels).movedim(-1, -3)
+        else:  # wide nets: one float tensor serves both, which peaked lowest in memory (benchmarks/RESULTS.md)
+            encoder_input = target = _unit_range(pixels)
+        post, prior, embed = self._observe(encoder_input, batch, None)
         feat = self.features(post)
         reward = self.reward_head(feat)
-        # A sum over pixels: the decoder's phases give the loss of the whole images, without interleaving them.
-        target = space_to_depth(pixels) if self.decoder.phase_levels == 2 else pixels
         terms: dict[str, Tensor] = {
-            "image": image_loss(self.decoder.phases(feat).float(), target.movedim(-1, -3)),
+            "image": image_loss(self.decoder.phases(feat).float(), target),
             "reward": reward_loss(reward, batch["reward"].float()),
         }
         if self.discount_head is not None:
