@@ -42,12 +42,7 @@ def preprocess_phases(image: Tensor) -> Tensor:
     memory), which :meth:`ConvEncoder.from_phases` takes. The rearrangement runs on the uint8 bytes, before the one
     float copy.
     """
-    return _unit_range(space_to_depth(image))
-
-
-def _unit_range(pixels: Tensor) -> Tensor:
-    """uint8 ``(..., H, W, C)`` to float32 ``(..., C, H, W)`` in ``[-0.5, 0.5]``, channels last in memory."""
-    return pixels.to(torch.float32).div_(255.0).sub_(0.5).movedim(-1, -3)
+    return preprocess_image(space_to_depth(image))
 
 
 class ScalarHead(nn.Module):
@@ -162,7 +157,7 @@ class WorldModel(nn.Module):
         if self.decoder.phase_levels == 2:  # narrow nets: the encoder scales the bytes, the target is rearranged
             encoder_input, target = pixels.movedim(-1, -3), space_to_depth(pixels).movedim(-1, -3)
         else:  # wide nets: one float tensor serves both, which peaked lowest in memory (benchmarks/RESULTS.md)
-            encoder_input = target = _unit_range(pixels)
+            encoder_input = target = preprocess_image(pixels)
         post, prior, embed = self._observe(encoder_input, batch, None)
         feat = self.features(post)
         reward = self.reward_head(feat)
