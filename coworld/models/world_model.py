@@ -153,16 +153,15 @@ class WorldModel(nn.Module):
         cfg = self.config
         batch_size, length = batch["action"].shape[:2]
         # A sum over pixels: the decoder's phases give the loss of the whole images, without interleaving them.
-        pixels = space_to_depth(batch["image"])  # uint8 2 x 2 phases
-        if self.decoder.phase_levels == 2:  # narrow nets: the encoder scales the bytes, the target is rearranged
-            encoder_input, target = pixels.movedim(-1, -3), space_to_depth(pixels).movedim(-1, -3)
-        else:  # wide nets: one float tensor serves both, which peaked lowest in memory (benchmarks/RESULTS.md)
-            encoder_input = target = preprocess_image(pixels)
-        post, prior, embed = self._observe(encoder_input, batch, None)
+        # The uint8 2 x 2 phases: the encoder's first layer and the loss scale them; the target is rearranged again
+        # where the decoder ends in 4 x 4 phases.
+        pixels = space_to_depth(batch["image"])
+        target = space_to_depth(pixels) if self.decoder.phase_levels == 2 else pixels
+        post, prior, embed = self._observe(pixels.movedim(-1, -3), batch, None)
         feat = self.features(post)
         reward = self.reward_head(feat)
         terms: dict[str, Tensor] = {
-            "image": image_loss(self.decoder.phases(feat).float(), target),
+            "image": image_loss(self.decoder.phases(feat).float(), target.movedim(-1, -3)),
             "reward": reward_loss(reward, batch["reward"].float()),
         }
         if self.discount_head is not None:

@@ -93,6 +93,11 @@ def test_image_reward_discount_terms() -> None:
     torch.testing.assert_close(image_loss(pred, pixels), image_loss(pred, scaled))
     got = torch.autograd.grad((image_loss(pred32, pixels) * weight).sum(), pred32)
     torch.testing.assert_close(got[0], torch.autograd.grad((image_loss(pred32, scaled) * weight).sum(), pred32)[0])
+    # Its backward reuses the saved difference: a second backward through the same graph fails, never runs on it.
+    loss = image_loss(pred32, pixels).sum()
+    loss.backward(retain_graph=True)
+    with pytest.raises(RuntimeError, match="modified by an inplace operation"):
+        loss.backward()
     mean, reward = torch.randn(2, 3), torch.randn(2, 3)
     torch.testing.assert_close(reward_loss(mean, reward), 0.5 * (mean - reward) ** 2)
     torch.testing.assert_close(reward_loss(UnitGaussian(mean), reward), 0.5 * (mean - reward) ** 2)
