@@ -9,9 +9,12 @@ Rows:
 - ``log_softmax``: the classes-first (log-)softmax of :mod:`coworld.models.distributions` against the plain one
   and against the transposed copy it replaced, at the RSSM posterior's sizes in batches of 8 and 16 sequences and
   of 64 and 512 states, forward and backward;
-- ``ELU``: :class:`coworld.models.networks.ELU` (PyTorch's forward, above its threshold the backward from the
-  output) against ``F.elu`` at an imagination step's hidden layer, the heads' on a whole imagined trajectory and a conv
-  layer's;
+- ``ELU``: :class:`coworld.models.networks.ELU` (above its threshold NumPy's forward and the backward from the
+  output) against ``F.elu``, forward and backward and forward alone, at an imagination step's hidden layer in the
+  tiny preset and half of it, the heads' on a whole imagined trajectory and the encoder's first layer's output, there
+  also in place (``ELU(inplace=True)``, as the conv stacks run it, against PyTorch's ELU on a new tensor);
+- ``max indices against argmax``: the categorical sample's class (:class:`OneHotCategorical.rsample`) at an imagination
+  step of the tiny preset;
 - ``encoder layer 2 input gradient``: its phases interleaved straight into the padded gradient against the
   transposed convolution then ``F.pad``;
 - ``adamw``: the world model's AdamW step at the tiny preset, fused against PyTorch's default (``foreach``);
@@ -107,8 +110,8 @@ def main() -> None:
             median_us(transposed, args.repeats),
         )
 
-    elu = ELU()
-    for shape in ((512, 64), (5632, 64), (512, 8, 30, 30)):
+    elu, elu_inplace = ELU(), ELU(inplace=True)
+    for shape in ((256, 64), (512, 64), (5632, 64), (512, 8, 31, 31)):
         x = torch.randn(shape, requires_grad=True)
         if x.ndim == 4:
             x = x.detach().contiguous(memory_format=torch.channels_last).requires_grad_()
@@ -122,6 +125,25 @@ def main() -> None:
 
         size = " x ".join(map(str, shape))
         row(f"ELU forward + backward, {size}", median_us(ours, args.repeats), median_us(plain, args.repeats))
+        data = x.detach()
+        row(
+            f"ELU forward, {size}",
+            median_us(lambda d=data: elu(d), args.repeats),
+            median_us(lambda d=data: torch.nn.functional.elu(d), args.repeats),
+        )
+        if x.ndim == 4:  # in place on a copy (the copy's time taken out of both)
+            copy_us = median_us(data.clone, args.repeats)
+            inplace_us = median_us(lambda d=data: elu_inplace(d.clone()), args.repeats) - copy_us
+            plain_us = median_us(lambda d=data: torch.nn.functional.elu(d.clone()), args.repeats) - copy_us
+            row(f"ELU forward in place, {size}", inplace_us, plain_us)
+
+    race = torch.rand(512, 8, 8)
+    assert torch.equal(race.max(-1, keepdim=True).indices, race.argmax(-1, keepdim=True))
+    row(
+        "max indices against argmax, 512 x 8 x 8",
+        median_us(lambda: race.max(-1, keepdim=True).indices, args.repeats),
+        median_us(lambda: race.argmax(-1, keepdim=True), args.repeats),
+    )
 
     # The encoder's second layer (8 -> 16 channels, 31 x 31 -> 14 x 14): its input gradient against the
     # transposed convolution then padding it took before.

@@ -233,7 +233,8 @@ class OneHotCategorical:
         if noise is None:
             noise = exponential_noise(probs.shape, probs.device)  # contiguous, as multinomial's
         race = torch.empty(probs.shape, device=probs.device)  # contiguous: argmax along a strided dim is slow
-        index = torch.div(probs.detach().float(), noise, out=race).argmax(dim=-1, keepdim=True)
+        # max's indices are argmax's (the first of equal values), and 1.4x faster at (512, 8, 8) (update_ops.py)
+        index = torch.div(probs.detach().float(), noise, out=race).max(dim=-1, keepdim=True).indices
         # F.one_hot's values, without its checks of the indices' range (two more reductions)
         sample = torch.zeros(probs.shape, dtype=probs.dtype, device=probs.device).scatter_(-1, index, 1.0)
         return sample + probs - probs.detach()

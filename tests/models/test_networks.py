@@ -203,16 +203,20 @@ def test_conv2d_stride2_is_the_strided_convolution_with_its_gradients(size: int,
         torch.testing.assert_close(a, c)
 
 
+@pytest.mark.parametrize("inplace", [False, True])
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-@pytest.mark.parametrize("shape", [(3, 4, 5, 6), (9, 8, 32, 32), (1100, 64), (20, 64)])
-def test_elu_is_the_elu_with_its_gradient(dtype: torch.dtype, shape: tuple[int, ...]) -> None:
-    """Below and above the size where :class:`ELU` leaves ``F.elu`` for its function that keeps the output:
-    PyTorch's values and gradient, the input's memory order (channels last for a conv's) kept."""
+@pytest.mark.parametrize("shape", [(3, 4, 5, 6), (9, 8, 32, 32), (1100, 64), (20, 64), (70000,)])
+def test_elu_is_the_elu_with_its_gradient(dtype: torch.dtype, shape: tuple[int, ...], inplace: bool) -> None:
+    """Below and above the size where :class:`ELU` leaves ``F.elu`` for its function that keeps the output (and
+    on a float32 CPU tensor takes NumPy's forward, over more than one block at 70000 numbers): PyTorch's values and
+    gradient, the input's memory order (channels last for a conv's) kept. In place, the gradient reaching the
+    layer before is the same."""
     x = torch.randn(*shape, dtype=dtype) * 3
     if x.ndim == 4:
         x = x.contiguous(memory_format=torch.channels_last)
     x.requires_grad_()
-    got, want = ELU()(x), torch.nn.functional.elu(x)
+    layer_out = x * 1.0  # a fresh output of a layer before, which an in-place ELU may overwrite
+    got, want = ELU(inplace=inplace)(layer_out), torch.nn.functional.elu(x)
     torch.testing.assert_close(got, want)
     assert got.stride() == want.stride()
     if x.ndim == 4:
@@ -220,3 +224,34 @@ def test_elu_is_the_elu_with_its_gradient(dtype: torch.dtype, shape: tuple[int, 
     grad = torch.randn_like(want)
     got_grad, want_grad = torch.autograd.grad(got, x, grad)[0], torch.autograd.grad(want, x, grad)[0]
     torch.testing.assert_close(got_grad, want_grad)
+
+
+def test_elu_in_place_overwrites_only_a_float32_cpu_tensor_that_is_no_view() -> None:
+    """``ELU(inplace=True)`` on a large float32 output writes into it (its forward is NumPy's there); on a view,
+    another dtype, a small tensor or with a plain ``ELU`` its input is left as it was."""
+    x = torch.randn(1100, 64)
+    y = ELU(inplace=True)(x)
+    assert y.data_ptr() == x.data_ptr()
+    torch.testing.assert_close(x, y)
+    for layer, inp in [
+        (ELU(inplace=True), torch.randn(2200, 64)[::2]),  # a view, strided
+        (ELU(inplace=True), torch.randn(2, 1100, 64).reshape(2200, 64)),  # a contiguous view
+        (ELU(inplace=True), torch.randn(1100, 64, dtype=torch.float64)),
+        (ELU(inplace=True), torch.randn(100, 64)),  # below the size of the function that keeps the output
+        (ELU(), torch.randn(1100, 64)),
+    ]:
+        before = inp.clone()
+        out = layer(inp)
+        assert torch.equal(inp, before)
+        torch.testing.assert_close(out, torch.nn.functional.elu(before))
+
+
+def test_elu_numpy_forward_keeps_the_special_values() -> None:
+    """The NumPy forward at the edges: infinities, NaN, signed zeros, values past ``expm1``'s float32 range and
+    next to zero, and a memory order that is neither contiguous nor channels last (PyTorch's then)."""
+    special = torch.tensor([float("inf"), -float("inf"), float("nan"), 0.0, -0.0, 100.0, -100.0, 1e-30, -1e-30])
+    x = torch.cat([special, torch.randn(40000) * 4])
+    got, want = ELU()(x), torch.nn.functional.elu(x)
+    torch.testing.assert_close(got, want, equal_nan=True)
+    odd = torch.randn(64, 8, 40, 40).permute(0, 2, 1, 3)  # dense, but neither order
+    torch.testing.assert_close(ELU()(odd), torch.nn.functional.elu(odd))

@@ -20,7 +20,7 @@ from coworld.config import Config
 from coworld.losses.dreamer import kl_balanced_loss, reward_loss
 from coworld.models.actor_critic import ActorCritic, flatten_states
 from coworld.models.distributions import UnitGaussian
-from coworld.models.networks import conv_transpose_stride2, frozen_parameters
+from coworld.models.networks import ELU, conv_transpose_stride2, frozen_parameters
 from coworld.models.rssm import RSSM, stack_states
 from coworld.models.world_model import WorldModel
 
@@ -48,13 +48,21 @@ def _reference_img_step(rssm: RSSM, state: dict[str, Tensor], action: Tensor) ->
     return {"deter": deter, "logits": logits, "stoch": _reference_sample(logits)}
 
 
+def _plain(net: torch.nn.Sequential, x: Tensor) -> Tensor:
+    """``net(x)`` with PyTorch's own ELU in place of the conv stacks' (:class:`ELU`, NumPy's forward, in place)."""
+    for layer in net:
+        x = F.elu(x) if isinstance(layer, ELU) else layer(x)
+    return x
+
+
 def _reference_world_model_loss(model: WorldModel, batch: dict[str, Tensor]) -> tuple[dict[str, Tensor], dict]:
     rssm, cfg = model.rssm, model.config
 
     def preprocess(image: Tensor) -> Tensor:
         return image.movedim(-1, -3).float() / 255.0 - 0.5
 
-    embed = model.encoder(preprocess(batch["image"]))
+    image = preprocess(batch["image"])
+    embed = _plain(model.encoder.net, image.reshape(-1, *image.shape[-3:])).reshape(*image.shape[:2], -1)
     batch_size, length = batch["action"].shape[:2]
     state = rssm.initial(batch_size)
     posts, priors = [], []
@@ -70,7 +78,7 @@ def _reference_world_model_loss(model: WorldModel, batch: dict[str, Tensor]) -> 
     post, prior = stack_states(posts), stack_states(priors)
     feat = rssm.features(post)
     decoder = model.decoder
-    image = decoder.net(decoder.linear(feat.reshape(-1, feat.shape[-1])).reshape(-1, 32 * decoder.depth, 1, 1))
+    image = _plain(decoder.net, decoder.linear(feat.reshape(-1, feat.shape[-1])).reshape(-1, 32 * decoder.depth, 1, 1))
     image = image.reshape(batch_size, length, *image.shape[1:])
     terms = {
         "image": -UnitGaussian(image, event_dims=3).log_prob(preprocess(batch["image"])),
