@@ -227,8 +227,9 @@ def test_elu_is_the_elu_with_its_gradient(dtype: torch.dtype, shape: tuple[int, 
 
 
 def test_elu_in_place_overwrites_only_a_float32_cpu_tensor_that_is_no_view() -> None:
-    """``ELU(inplace=True)`` on a large float32 output writes into it (its forward is NumPy's there); on a view,
-    another dtype, a small tensor or with a plain ``ELU`` its input is left as it was."""
+    """``ELU(inplace=True)`` on a large float32 output writes into it (its forward is NumPy's there, on one torch
+    thread); on a view, another dtype, a small tensor, with a plain ``ELU`` or on two threads its input is left as it
+    was."""
     x = torch.randn(1100, 64)
     y = ELU(inplace=True)(x)
     assert y.data_ptr() == x.data_ptr()
@@ -244,6 +245,14 @@ def test_elu_in_place_overwrites_only_a_float32_cpu_tensor_that_is_no_view() -> 
         out = layer(inp)
         assert torch.equal(inp, before)
         torch.testing.assert_close(out, torch.nn.functional.elu(before))
+    threads = torch.get_num_threads()
+    torch.set_num_threads(2)  # PyTorch's ELU, on both threads
+    try:
+        before = x.clone()
+        torch.testing.assert_close(ELU(inplace=True)(x), torch.nn.functional.elu(before))
+        assert torch.equal(x, before)
+    finally:
+        torch.set_num_threads(threads)
 
 
 def test_elu_numpy_forward_keeps_the_special_values() -> None:
