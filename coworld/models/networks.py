@@ -88,11 +88,11 @@ class _EluKeepingOutput(torch.autograd.Function):
     nothing else keeps, is freed as soon as the activation has run (the next layer keeps the output anyway).
 
     On a float32 CPU tensor the forward is :func:`_elu_numpy`'s; with ``inplace`` it overwrites ``x`` where
-    it may (not a view)."""
+    it may (not a view, nor a leaf that requires grad)."""
 
     @staticmethod
     def forward(ctx: Any, x: Tensor, inplace: bool) -> Tensor:
-        out = _elu_numpy(x, inplace=inplace and x._base is None)
+        out = _elu_numpy(x, inplace=inplace and x._base is None and not (x.is_leaf and x.requires_grad))
         if out is None:
             out = F.elu(x)
         elif out is x:

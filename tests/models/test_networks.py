@@ -226,10 +226,10 @@ def test_elu_is_the_elu_with_its_gradient(dtype: torch.dtype, shape: tuple[int, 
     torch.testing.assert_close(got_grad, want_grad)
 
 
-def test_elu_in_place_overwrites_only_a_float32_cpu_tensor_that_is_no_view() -> None:
+def test_elu_in_place_overwrites_only_a_new_float32_cpu_output() -> None:
     """``ELU(inplace=True)`` on a large float32 output writes into it (its forward is NumPy's there, on one torch
-    thread); on a view, another dtype, a small tensor, with a plain ``ELU`` or on two threads its input is left as it
-    was."""
+    thread); on a view, another dtype, a leaf that requires grad, a small tensor, with a plain ``ELU`` or on two
+    threads its input is left as it was."""
     x = torch.randn(1100, 64)
     y = ELU(inplace=True)(x)
     assert y.data_ptr() == x.data_ptr()
@@ -238,6 +238,7 @@ def test_elu_in_place_overwrites_only_a_float32_cpu_tensor_that_is_no_view() -> 
         (ELU(inplace=True), torch.randn(2200, 64)[::2]),  # a view, strided
         (ELU(inplace=True), torch.randn(2, 1100, 64).reshape(2200, 64)),  # a contiguous view
         (ELU(inplace=True), torch.randn(1100, 64, dtype=torch.float64)),
+        (ELU(inplace=True), torch.randn(1100, 64, requires_grad=True)),  # a leaf that requires grad
         (ELU(inplace=True), torch.randn(100, 64)),  # below the size of the function that keeps the output
         (ELU(), torch.randn(1100, 64)),
     ]:
