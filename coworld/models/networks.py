@@ -494,9 +494,11 @@ class ConvDecoder(nn.Module):
             image = depth_to_space(image)
         return image.reshape(*phases.shape[:-3], *image.shape[1:])
 
-    def phases(self, feat: Tensor) -> Tensor:
+    def phases(self, feat: Tensor, offset: float = 0.0) -> Tensor:
         """The mean image's phases, :func:`space_to_depth` applied :attr:`phase_levels` times (channels first):
-        ``(..., feat_size)`` -> ``(..., 4 C, 32, 32)`` or ``(..., 16 C, 16, 16)``.
+        ``(..., feat_size)`` -> ``(..., 4 C, 32, 32)`` or ``(..., 16 C, 16, 16)``; plus ``offset``, which the last
+        layer adds with its bias (the image loss takes the mean plus 0.5, on the pixels' scale, without a pass of
+        its own over the image).
 
         A loss summed over pixels compares these with the target's phases, so the largest tensors of the update are
         never interleaved (forward and backward). With 4 x 4 phases the third layer stops at its output's 2 x 2
@@ -511,7 +513,7 @@ class ConvDecoder(nn.Module):
                 out = out.contiguous(memory_format=torch.channels_last)
                 if i == last:
                     to_phases = stride2_phases4 if self.phase_levels == 2 else stride2_phases
-                    out = to_phases(out, layer.weight, layer.bias)
+                    out = to_phases(out, layer.weight, layer.bias + offset if offset else layer.bias)
                 elif i == last - 2 and self.phase_levels == 2:  # its phases feed the last layer
                     out = stride2_phases(out, layer.weight, layer.bias)
                 else:

@@ -161,7 +161,7 @@ class WorldModel(nn.Module):
         feat = self.features(post)
         reward = self.reward_head(feat)
         terms: dict[str, Tensor] = {
-            "image": image_loss(self.decoder.phases(feat).float(), target.movedim(-1, -3)),
+            "image": image_loss(self.decoder.phases(feat, offset=0.5).float(), target.movedim(-1, -3), offset=0.5),
             "reward": reward_loss(reward, batch["reward"].float()),
         }
         if self.discount_head is not None:

@@ -93,6 +93,14 @@ def test_image_reward_discount_terms() -> None:
     torch.testing.assert_close(image_loss(pred, pixels), image_loss(pred, scaled))
     got = torch.autograd.grad((image_loss(pred32, pixels) * weight).sum(), pred32)
     torch.testing.assert_close(got[0], torch.autograd.grad((image_loss(pred32, scaled) * weight).sum(), pred32)[0])
+    # A prediction that carries an offset (the world model's mean plus 0.5) gives the same loss and gradient.
+    for offset in (0.5, 0.25):
+        for goal in (pixels, scaled):
+            shifted = (pred32.detach() + offset).requires_grad_()
+            torch.testing.assert_close(image_loss(shifted, goal, offset=offset), image_loss(pred, scaled))
+            got = torch.autograd.grad((image_loss(shifted, goal, offset=offset) * weight).sum(), shifted)
+            want = torch.autograd.grad((image_loss(pred32, scaled) * weight).sum(), pred32)
+            torch.testing.assert_close(got[0], want[0])
     # Its backward reuses the saved difference: a second backward through the same graph fails, never runs on it.
     loss = image_loss(pred32, pixels).sum()
     loss.backward(retain_graph=True)

@@ -168,6 +168,11 @@ def test_decoder_phases_match_the_plain_layers(depth: int, levels: int) -> None:
     want_grads = torch.autograd.grad(plain(), [feat, *decoder.parameters()], plain_grad.reshape(2, 3, 3, 64, 64))
     for a, b in zip(got_grads, want_grads, strict=True):
         torch.testing.assert_close(a, b)
+    # An offset rides on the last layer's bias: the same phases plus the offset, the same gradients.
+    shifted = decoder.phases(feat, offset=0.5)
+    torch.testing.assert_close(shifted, out + 0.5)
+    for a, b in zip(torch.autograd.grad(shifted, [feat, *decoder.parameters()], grad), got_grads, strict=True):
+        torch.testing.assert_close(a, b)
 
 
 @pytest.mark.parametrize(("rows", "cols", "bias"), [(15, 15, True), (4, 7, False), (1, 2, True)])
