@@ -240,6 +240,11 @@ class TrainConfig:
     """Online runs: each update runs on a background thread while the agent takes the next ``train_every``
     environment steps with a copy of the weights from before it, so acting and learning use two cores at the same
     train ratio; the agent then acts one update behind (:mod:`coworld.training.online`)."""
+    prefetch: bool = True
+    """Offline batches (offline DreamerV2 and its variants, the model-free baselines, CoWorld's target data): the
+    next batch is drawn from the dataset and laid out for the model on a background thread while the current update
+    runs (:mod:`coworld.data.prefetch`). The same batches in the same order either way; off, each is made between
+    updates, on the updates' thread."""
     actor_warmup: Annotated[int, NON_NEGATIVE] = 0
     """Updates that train the world model alone before the actor and critic start learning (0: from the first).
     Until then the agent acts with its untrained actor's wide spread, so the data stay varied while the model

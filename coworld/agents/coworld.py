@@ -36,6 +36,7 @@ from coworld import interrupt
 from coworld.agents.dreamerv2 import DreamerV2
 from coworld.config import Config, to_dict
 from coworld.data import open_dataset
+from coworld.data.prefetch import Prefetcher
 from coworld.envs import task_spec
 from coworld.losses.coworld import (
     alignment_loss,
@@ -81,7 +82,7 @@ class CoWorld:
     def train_target(self, batch: Mapping[str, np.ndarray]) -> dict[str, float]:
         """One target world-model step with Eq. 3 and one target actor-critic step with Eq. 6."""
         cfg = self.config.coworld
-        batch_t = self.target.to_batch(batch)
+        batch_t = self.target.prepare(batch)  # the images' phases once, for both world models
         extra = None
         if cfg.align:
             with torch.no_grad():
@@ -186,6 +187,12 @@ class _SourceLearner:
         self.coworld.source.load_state_dict(state)
 
 
+def _close_batches(agent: CoWorld) -> None:
+    """Stop the thread making the target batches ahead, if any."""
+    if isinstance(agent.target_batches, Prefetcher):
+        agent.target_batches.close()
+
+
 def _show(bar: Any, state: Mapping[str, Any], iterations: int) -> None:
     """The progress bar's postfix: iteration, phase and the last evaluation return."""
     postfix = {"iteration": f"{int(state['iteration']) + 1}/{iterations}", "phase": state["phase"]}
@@ -259,7 +266,10 @@ def train_coworld(job: Any, *, device: torch.device, resumed: bool, progress: bo
                 iteration = int(progress_state["iteration"])
                 _show(bar, progress_state, cfg.iterations)
                 seed = config.seed + 1000 * (iteration + 1)
-                agent.target_batches = iter(dataset.sampler(config.train.batch_size, config.train.seq_len, seed=seed))
+                _close_batches(agent)
+                batches = iter(dataset.sampler(config.train.batch_size, config.train.seq_len, seed=seed))
+                # made ahead on a background thread, and laid out for the world models (the same batches either way)
+                agent.target_batches = Prefetcher(batches, agent.target.prepare) if config.train.prefetch else batches
                 if progress_state["phase"] == "target":
                     rate = Rate(agent.target.updates)
                     for i in range(cfg.target_updates):
@@ -307,6 +317,7 @@ def train_coworld(job: Any, *, device: torch.device, resumed: bool, progress: bo
             bar.close()
         finally:
             source_trainer.close()
+            _close_batches(agent)
             dataset.close()
     return {
         "logdir": str(logdir),

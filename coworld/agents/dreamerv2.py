@@ -188,6 +188,12 @@ class DreamerV2:
             out[key] = tensor.to(self.device, non_blocking=True)
         return out
 
+    def prepare(self, batch: Mapping[str, np.ndarray | Tensor]) -> dict[str, Tensor]:
+        """:meth:`to_batch` and :meth:`WorldModel.prepare <coworld.models.world_model.WorldModel.prepare>`: the
+        batch as the update reads it, made with no weight (so :class:`~coworld.data.prefetch.Prefetcher` can make
+        the next one during an update). :meth:`train` takes batches either way."""
+        return self.world_model.prepare(self.to_batch(batch))
+
     def train(self, batch: Mapping[str, np.ndarray | Tensor]) -> dict[str, float]:
         """One world-model update and one actor-critic update in imagination (the latter only once
         ``train.actor_warmup`` updates are done); returns namespaced metrics."""

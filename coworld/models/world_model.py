@@ -122,14 +122,32 @@ class WorldModel(nn.Module):
         """RSSM state -> features ``(..., D + S * K)``."""
         return self.rssm.features(state)
 
+    def prepare(self, batch: dict[str, Tensor]) -> dict[str, Tensor]:
+        """The batch with its images laid out as :meth:`loss` and :meth:`observe` read them, work that depends on
+        no weight (so it can run ahead, on another thread, while an update runs; :mod:`coworld.data.prefetch`).
+
+        ``image`` ``(B, T, H, W, C)`` is replaced by ``phases``, its uint8 2 x 2 phases
+        (:func:`~coworld.models.networks.space_to_depth`, ``(B, T, H / 2, W / 2, 4 C)``), and, where the decoder
+        ends in 4 x 4 phases, ``target``, theirs ``(B, T, H / 4, W / 4, 16 C)``; the other entries are kept. A
+        prepared batch is returned as it is.
+        """
+        if "phases" in batch:
+            return batch
+        out = {key: value for key, value in batch.items() if key != "image"}
+        out["phases"] = space_to_depth(batch["image"])
+        if self.decoder.phase_levels == 2:
+            out["target"] = space_to_depth(out["phases"])
+        return out
+
     def observe(self, batch: dict[str, Tensor], state: State | None = None) -> tuple[State, State, Tensor]:
-        """Encode a batch and run the posterior over it.
+        """Encode a batch (or a :meth:`prepare`-d one) and run the posterior over it.
 
         Returns ``(post, prior, embed)``: states with batch ``(B, T)`` (``deter (B, T, D)``,
         ``logits``/``stoch (B, T, S, K)``) and the embeddings ``(B, T, E)``. The recurrent state and the previous
         action are zeroed where ``is_first``; ``state`` (batch ``(B,)``) continues from an earlier chunk.
         """
-        return self._observe(space_to_depth(batch["image"]).movedim(-1, -3), batch, state)
+        phases = batch["phases"] if "phases" in batch else space_to_depth(batch["image"])
+        return self._observe(phases.movedim(-1, -3), batch, state)
 
     def _observe(self, phases: Tensor, batch: dict[str, Tensor], state: State | None) -> tuple[State, State, Tensor]:
         """:meth:`observe` from images already rearranged into phases (:func:`preprocess_phases`, or the uint8
@@ -139,7 +157,7 @@ class WorldModel(nn.Module):
         return post, prior, embed
 
     def loss(self, batch: dict[str, Tensor]) -> tuple[dict[str, Tensor], dict[str, Any]]:
-        """DreamerV2's world-model loss on a batch.
+        """DreamerV2's world-model loss on a batch (or a :meth:`prepare`-d one).
 
         Returns ``(terms, aux)``. ``terms`` holds unreduced ``(B, T)`` tensors: ``'image'``, ``'reward'``,
         ``'discount'`` (only with ``pred_discount``) negative log-likelihoods and ``'kl'``, the balanced KL before
@@ -155,8 +173,9 @@ class WorldModel(nn.Module):
         # A sum over pixels: the decoder's phases give the loss of the whole images, without interleaving them.
         # The uint8 2 x 2 phases: the encoder's first layer and the loss scale them; the target is rearranged again
         # where the decoder ends in 4 x 4 phases.
-        pixels = space_to_depth(batch["image"])
-        target = space_to_depth(pixels) if self.decoder.phase_levels == 2 else pixels
+        batch = self.prepare(batch)
+        pixels = batch["phases"]
+        target = batch.get("target", pixels)
         post, prior, embed = self._observe(pixels.movedim(-1, -3), batch, None)
         feat = self.features(post)
         reward = self.reward_head(feat)

@@ -78,6 +78,8 @@ def train_offline(job: TrainJob, *, device: torch.device, resumed: bool, progres
             make_sampler=make_sampler,
             discount=discount,
             workers=config.train.envs,
+            prefetch=config.train.prefetch,
+            prepare=getattr(agent, "prepare", None),
         )
         restored = resumed and trainer.restore()
         if job.source is not None and not restored:

@@ -3,7 +3,9 @@
 The agent sees dataset batches only; the target environment is used for evaluation alone. The batch stream
 is cut into chunks at checkpoint boundaries and each chunk's sampler is seeded by (seed, updates done), so a
 run killed and resumed from its last checkpoint draws the same batches, with the same random state, as one
-that was never interrupted.
+that was never interrupted. With ``prefetch`` the next batch is drawn (and passed through ``prepare``) on a
+background thread during each update (:class:`~coworld.data.prefetch.Prefetcher`): the same batches in the same
+order.
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ import numpy as np
 
 from coworld import interrupt
 from coworld.config import to_dict
+from coworld.data.prefetch import Prefetcher
 from coworld.progress import progress_bar
 from coworld.training.checkpoint import CHECKPOINT_NAME, load_checkpoint, rng_state, save_checkpoint, set_rng_state
 from coworld.training.evaluate import evaluate
@@ -51,6 +54,9 @@ class OfflineTrainer:
         kind: the checkpoint's kind (e.g. ``dreamerv2-offline``, ``curl``), checked on resume and by eval.
         make_sampler: seed -> iterator of batches.
         discount: discount of the value check in evaluations (None for agents without a critic estimate).
+        prefetch: make each next batch on a background thread while the agent trains on the current one.
+        prepare: what the background thread also does to each batch (the agent's ``prepare``: work that reads no
+            weight); ``agent.train`` must take its output.
     """
 
     def __init__(
@@ -66,6 +72,8 @@ class OfflineTrainer:
         make_sampler: SamplerFactory,
         discount: float | None = None,
         workers: int = 1,
+        prefetch: bool = False,
+        prepare: Callable[[dict[str, np.ndarray]], Any] | None = None,
     ) -> None:
         self.agent, self.kind, self.task, self.config = agent, kind, task, config
         self.schedule = schedule
@@ -74,6 +82,8 @@ class OfflineTrainer:
         self.make_sampler = make_sampler
         self.discount = discount
         self.workers = workers
+        self.prefetch = prefetch
+        self.prepare = prepare
         self.updates = 0
         self.last_eval: float | None = None
 
@@ -113,7 +123,7 @@ class OfflineTrainer:
     def run(self, *, progress: bool = True) -> OfflineResult:
         s = self.schedule
         bar = progress_bar(total=s.updates, initial=self.updates, desc=self.kind, unit="updates", enabled=progress)
-        sampler = self.make_sampler(self.config.seed + self.updates)
+        sampler = self._batches(self.config.seed + self.updates)
         update_rate = Rate(self.updates)
         metrics: dict[str, float] = {}
         try:
@@ -130,10 +140,17 @@ class OfflineTrainer:
                     bar.set_postfix(eval_return=f"{self.last_eval:.1f}")
                 if self.updates % s.checkpoint_every == 0 or self.updates == s.updates:
                     self.save()
-                    sampler = self.make_sampler(self.config.seed + self.updates)
+                    _close(sampler)
+                    sampler = self._batches(self.config.seed + self.updates)
         finally:
+            _close(sampler)
             bar.close()
         return OfflineResult(self.updates, self.last_eval)
+
+    def _batches(self, seed: int) -> Iterator[Any]:
+        """The batch stream from ``seed``: the sampler's, made ahead on a background thread with ``prefetch``."""
+        batches = self.make_sampler(seed)
+        return Prefetcher(batches, self.prepare) if self.prefetch else batches
 
     def evaluate(self) -> None:
         result, _ = evaluate(
@@ -148,3 +165,9 @@ class OfflineTrainer:
         metrics = result.metrics()
         self.logger.log(metrics, self.updates, unit="update")
         log_open_loop(self.logger, self.agent, self.make_sampler, self.updates, tag=f"openl/{self.task}", unit="update")
+
+
+def _close(batches: Iterator[Any]) -> None:
+    """Stop a :class:`Prefetcher`'s thread (a plain sampler has none)."""
+    if isinstance(batches, Prefetcher):
+        batches.close()

@@ -5,9 +5,11 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+import pytest
 import torch
 
 from coworld.config import Config
+from coworld.models.networks import space_to_depth
 from coworld.models.world_model import WorldModel, preprocess_image
 
 from .conftest import ACTION_SIZE, random_batch
@@ -38,6 +40,28 @@ def test_loss_terms_shapes_and_total(tiny: Config) -> None:
     # The reward head's mean, fed to reward-loss, reproduces the term (how CoWorld relabels source rewards).
     pred = model.reward_head(aux["feat"]).mean
     torch.testing.assert_close(0.5 * (pred - batch["reward"]) ** 2, terms["reward"])
+
+
+# The tiny preset's conv depth (its decoder ends in 4 x 4 phases, so the loss's target is laid out again) and 16.
+@pytest.mark.parametrize("depth", [None, 16])
+def test_a_prepared_batch_gives_the_same_loss_gradients_and_posterior(tiny: Config, depth: int | None) -> None:
+    cfg = tiny.world_model if depth is None else dataclasses.replace(tiny.world_model, cnn_depth=depth)
+    model = WorldModel(config=cfg, action_size=ACTION_SIZE)
+    batch = random_batch(batch=2, length=5)
+    prepared = model.prepare(batch)
+    assert "image" not in prepared and model.prepare(prepared) is prepared
+    torch.testing.assert_close(prepared["phases"], space_to_depth(batch["image"]), rtol=0, atol=0)
+    assert ("target" in prepared) == (model.decoder.phase_levels == 2)
+    results = []
+    for given in (batch, prepared):
+        torch.manual_seed(0)
+        terms, aux = model.loss(given)
+        grads = torch.autograd.grad(aux["loss"], list(model.parameters()))
+        torch.manual_seed(1)
+        post, _, embed = model.observe(given)
+        results.append([*terms.values(), *grads, post["stoch"], embed])
+    for a, b in zip(*results, strict=True):
+        assert torch.equal(a, b)
 
 
 def test_no_discount_head_without_pred_discount(tiny: Config) -> None:
