@@ -36,7 +36,7 @@ from coworld import interrupt
 from coworld.agents.dreamerv2 import DreamerV2
 from coworld.config import Config, to_dict
 from coworld.data import open_dataset
-from coworld.data.prefetch import Prefetcher
+from coworld.data.prefetch import prefetched, stop_prefetch
 from coworld.envs import task_spec
 from coworld.losses.coworld import (
     alignment_loss,
@@ -187,12 +187,6 @@ class _SourceLearner:
         self.coworld.source.load_state_dict(state)
 
 
-def _close_batches(agent: CoWorld) -> None:
-    """Stop the thread making the target batches ahead, if any."""
-    if isinstance(agent.target_batches, Prefetcher):
-        agent.target_batches.close()
-
-
 def _show(bar: Any, state: Mapping[str, Any], iterations: int) -> None:
     """The progress bar's postfix: iteration, phase and the last evaluation return."""
     postfix = {"iteration": f"{int(state['iteration']) + 1}/{iterations}", "phase": state["phase"]}
@@ -266,10 +260,10 @@ def train_coworld(job: Any, *, device: torch.device, resumed: bool, progress: bo
                 iteration = int(progress_state["iteration"])
                 _show(bar, progress_state, cfg.iterations)
                 seed = config.seed + 1000 * (iteration + 1)
-                _close_batches(agent)
+                stop_prefetch(agent.target_batches)
                 batches = iter(dataset.sampler(config.train.batch_size, config.train.seq_len, seed=seed))
                 # made ahead on a background thread, and laid out for the world models (the same batches either way)
-                agent.target_batches = Prefetcher(batches, agent.target.prepare) if config.train.prefetch else batches
+                agent.target_batches = prefetched(batches, agent.target.prepare, config.train.prefetch)
                 if progress_state["phase"] == "target":
                     rate = Rate(agent.target.updates)
                     for i in range(cfg.target_updates):
@@ -317,7 +311,7 @@ def train_coworld(job: Any, *, device: torch.device, resumed: bool, progress: bo
             bar.close()
         finally:
             source_trainer.close()
-            _close_batches(agent)
+            stop_prefetch(agent.target_batches)
             dataset.close()
     return {
         "logdir": str(logdir),

@@ -12,7 +12,7 @@ from collections.abc import Callable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any, Generic, TypeVar
 
-__all__ = ["Prefetcher"]
+__all__ = ["Prefetcher", "prefetched", "stop_prefetch"]
 
 T = TypeVar("T")
 
@@ -42,14 +42,15 @@ class Prefetcher(Generic[T]):
         return self
 
     def __next__(self) -> T:
-        if self._executor is None or self._next is None:
+        made = self._next
+        if made is None:  # closed
             raise StopIteration
-        made, self._next = self._next, None
         try:
             item = made.result()
         except BaseException:  # the source's end (StopIteration) or its error: nothing more to make
             self.close()
             raise
+        assert self._executor is not None  # open while a next item was pending
         self._next = self._executor.submit(self._make)
         return item
 
@@ -65,3 +66,16 @@ class Prefetcher(Generic[T]):
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def prefetched(source: Iterator[Any], prepare: Callable[[Any], Any] | None, ahead: bool) -> Iterator[Any]:
+    """The batch stream a trainer reads: ``source`` made ahead through ``prepare`` (a :class:`Prefetcher`) where
+    ``ahead`` (``train.prefetch``), else ``source`` itself, each batch drawn when the update asks for it (whose own
+    code then does what ``prepare`` would). Pass it to :func:`stop_prefetch` when done."""
+    return Prefetcher(source, prepare) if ahead else source
+
+
+def stop_prefetch(batches: Iterator[Any] | None) -> None:
+    """Stop the thread of a :class:`Prefetcher` (any other iterator has none)."""
+    if isinstance(batches, Prefetcher):
+        batches.close()

@@ -4,7 +4,7 @@ The agent sees dataset batches only; the target environment is used for evaluati
 is cut into chunks at checkpoint boundaries and each chunk's sampler is seeded by (seed, updates done), so a
 run killed and resumed from its last checkpoint draws the same batches, with the same random state, as one
 that was never interrupted. With ``prefetch`` the next batch is drawn (and passed through ``prepare``) on a
-background thread during each update (:class:`~coworld.data.prefetch.Prefetcher`): the same batches in the same
+background thread during each update (:func:`~coworld.data.prefetch.prefetched`): the same batches in the same
 order.
 """
 
@@ -19,7 +19,7 @@ import numpy as np
 
 from coworld import interrupt
 from coworld.config import to_dict
-from coworld.data.prefetch import Prefetcher
+from coworld.data.prefetch import prefetched, stop_prefetch
 from coworld.progress import progress_bar
 from coworld.training.checkpoint import CHECKPOINT_NAME, load_checkpoint, rng_state, save_checkpoint, set_rng_state
 from coworld.training.evaluate import evaluate
@@ -140,17 +140,16 @@ class OfflineTrainer:
                     bar.set_postfix(eval_return=f"{self.last_eval:.1f}")
                 if self.updates % s.checkpoint_every == 0 or self.updates == s.updates:
                     self.save()
-                    _close(sampler)
+                    stop_prefetch(sampler)
                     sampler = self._batches(self.config.seed + self.updates)
         finally:
-            _close(sampler)
+            stop_prefetch(sampler)
             bar.close()
         return OfflineResult(self.updates, self.last_eval)
 
     def _batches(self, seed: int) -> Iterator[Any]:
         """The batch stream from ``seed``: the sampler's, made ahead on a background thread with ``prefetch``."""
-        batches = self.make_sampler(seed)
-        return Prefetcher(batches, self.prepare) if self.prefetch else batches
+        return prefetched(self.make_sampler(seed), self.prepare, self.prefetch)
 
     def evaluate(self) -> None:
         result, _ = evaluate(
@@ -165,9 +164,3 @@ class OfflineTrainer:
         metrics = result.metrics()
         self.logger.log(metrics, self.updates, unit="update")
         log_open_loop(self.logger, self.agent, self.make_sampler, self.updates, tag=f"openl/{self.task}", unit="update")
-
-
-def _close(batches: Iterator[Any]) -> None:
-    """Stop a :class:`Prefetcher`'s thread (a plain sampler has none)."""
-    if isinstance(batches, Prefetcher):
-        batches.close()
