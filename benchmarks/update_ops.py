@@ -23,7 +23,13 @@ Rows:
   backward PyTorch's own transposed-convolution backward against the phase convolution's autograd, at batch 512;
 - ``decoder layer 4``: :func:`coworld.models.networks.stride2_phases4` (2 x 2 phases in, 4 x 4 phases out) against
   :func:`~coworld.models.networks.stride2_phases` of the interleaved input, forward and backward, at batch 512, from
-  8, 16 and 32 input channels (the decoder takes the faster: ``_PHASES4_BELOW_DEPTH``).
+  8, 16 and 32 input channels (the decoder takes the faster: ``_PHASES4_BELOW_DEPTH``);
+- ``bias gradient apart``: a convolution's backward with the bias gradient summed apart
+  (:func:`coworld.models.networks._bias_grad`) against PyTorch's backward computing it, at the decoder's transposed
+  layers, its phase convolutions and the encoder's first layer, at the tiny preset's widths on batch 512 and the
+  authors' (depth 32) on batch 800;
+- ``bias gradient sum``: :func:`~coworld.models.networks._bias_grad`'s matrix-vector product against
+  ``grad.sum((0, 2, 3))`` on channels-last gradients of 8 to 64 channels.
 
 Each cell is the median of ``--repeats`` timings (thread CPU time) after 3 warm-up calls.
 """
@@ -41,6 +47,8 @@ from coworld.config import make_config
 from coworld.models.distributions import exponential_noise, log_softmax
 from coworld.models.networks import (
     ELU,
+    _bias_grad,
+    _stride2_backward,
     _transposed_input_grad,
     conv_transpose_stride2,
     depth_to_space,
@@ -210,6 +218,53 @@ def main() -> None:
             f"decoder layer 4 from {c_in} channels, fwd + bwd",
             median_us(ours, args.repeats),
             median_us(plain, args.repeats),
+        )
+
+    bias_rows(args.repeats)
+
+
+def bias_rows(repeats: int) -> None:
+    """The ``bias gradient`` rows: input shape, weight shape, padding (None: a transposed stride-2 layer), and
+    whether the layer's input needs its gradient (not the encoder's first, which reads the images)."""
+    layers = (
+        ("decoder layer 2 (tiny)", (512, 32, 5, 5), (32, 16, 5, 5), None, True),
+        ("decoder layer 3 phases (tiny)", (512, 16, 13, 13), (32, 16, 3, 3), 2, True),
+        ("decoder layer 4 phases (tiny)", (512, 32, 15, 15), (48, 32, 2, 2), 1, True),
+        ("encoder layer 1 (tiny)", (512, 12, 32, 32), (8, 12, 2, 2), 0, False),
+        ("decoder layer 2 (authors', 800)", (800, 128, 5, 5), (128, 64, 5, 5), None, True),
+        ("decoder layer 3 (authors', 800)", (800, 64, 13, 13), (64, 32, 6, 6), None, True),
+        ("encoder layer 1 (authors', 800)", (800, 12, 32, 32), (32, 12, 2, 2), 0, False),
+    )
+    for name, x_shape, w_shape, padding, input_grad in layers:
+        x = torch.randn(x_shape).contiguous(memory_format=torch.channels_last)
+        weight = torch.randn(w_shape) * 0.05
+        if padding is None:
+            out = conv_transpose_stride2(x, weight, None)
+        else:
+            out = torch.nn.functional.conv2d(x, weight, padding=padding)
+        grad = torch.randn_like(out)
+
+        def backward(with_bias: bool, x=x, w=weight, g=grad, p=padding, need_x=input_grad):  # noqa: ANN001, ANN202
+            mask = (need_x, True, with_bias)
+            if p is None:
+                return _stride2_backward(g, x, w, transposed=True, mask=mask)
+            sizes = [w.shape[0]] if with_bias else None
+            return torch.ops.aten.convolution_backward(
+                g, x, w, sizes, [1, 1], [p, p], [1, 1], False, [0, 0], 1, list(mask)
+            )
+
+        row(
+            f"bias gradient apart, {name}",
+            median_us(lambda b=backward, g=grad: (b(False), _bias_grad(g, True)), repeats),
+            median_us(lambda b=backward: b(True), repeats),
+        )
+    for shape in ((512, 8, 31, 31), (512, 12, 32, 32), (512, 16, 13, 13), (512, 32, 15, 15), (512, 48, 16, 16)):
+        grad = torch.randn(shape).contiguous(memory_format=torch.channels_last)
+        assert torch.allclose(_bias_grad(grad, True), grad.sum((0, 2, 3)), rtol=1e-4, atol=1e-2)
+        row(
+            f"bias gradient sum, {' x '.join(map(str, shape))}",
+            median_us(lambda g=grad: _bias_grad(g, True), repeats),
+            median_us(lambda g=grad: g.sum((0, 2, 3)), repeats),
         )
 
 

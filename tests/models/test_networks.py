@@ -14,7 +14,9 @@ from coworld.models.networks import (
     ConvEncoder,
     LayerNormGRUCell,
     check_image_shape,
+    conv2d,
     conv2d_stride2,
+    conv_transpose_stride2,
     depth_to_space,
     frozen_parameters,
     space_to_depth,
@@ -192,6 +194,50 @@ def test_stride2_phases4_is_the_transposed_convolution_from_phases_to_phases(row
         torch.testing.assert_close(a, c)
     with pytest.raises(ValueError, match="kernel-6"):
         stride2_phases4(phases, weight[..., :5, :5], b)
+
+
+# Output numbers against the bias gradient's rows (a multiple of the channels, at least 128 numbers): whole rows and
+# a remainder, whole rows only, and fewer numbers than one row.
+@pytest.mark.parametrize(("channels", "size", "padding"), [(8, 5, 0), (12, 7, 1), (48, 3, 2), (96, 2, 0)])
+@pytest.mark.parametrize("layout", [torch.channels_last, torch.contiguous_format])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_conv2d_is_the_convolution_with_its_gradients(
+    channels: int, size: int, padding: int, layout: torch.memory_format, dtype: torch.dtype
+) -> None:
+    """:func:`conv2d` takes the bias gradient apart from PyTorch's backward (on a float32 channels-last gradient
+    as a matrix-vector product): PyTorch's values and gradients, without a bias too."""
+    x = torch.randn(3, 5, size, size, dtype=dtype).contiguous(memory_format=layout).requires_grad_()
+    weight = torch.randn(channels, 5, 2, 2, dtype=dtype, requires_grad=True)
+    b = torch.randn(channels, dtype=dtype, requires_grad=True)
+    tolerance = {"rtol": 1e-5, "atol": 1e-4} if dtype == torch.float32 else {}
+    for bias in (b, None):
+        inputs = [x, weight] + ([b] if bias is not None else [])
+        got, want = (
+            conv2d(x, weight, bias, padding=padding),
+            torch.nn.functional.conv2d(x, weight, bias, padding=padding),
+        )
+        torch.testing.assert_close(got, want)
+        assert got.is_contiguous(memory_format=layout)
+        grad = torch.randn_like(want)
+        got_grads = torch.autograd.grad(got, inputs, grad)
+        for a, c in zip(got_grads, torch.autograd.grad(want, inputs, grad), strict=True):
+            torch.testing.assert_close(a, c, **tolerance)
+
+
+@pytest.mark.parametrize(("c_out", "size"), [(16, 5), (12, 3)])
+def test_conv_transpose_stride2_bias_gradient_in_float32(c_out: int, size: int) -> None:
+    """The transposed convolution's bias gradient, summed apart as a matrix-vector product on a float32
+    channels-last gradient, is PyTorch's."""
+    x = torch.randn(4, 6, size, size).contiguous(memory_format=torch.channels_last).requires_grad_()
+    weight = torch.randn(6, c_out, 5, 5, requires_grad=True)
+    bias = torch.randn(c_out, requires_grad=True)
+    got, want = conv_transpose_stride2(x, weight, bias), torch.nn.functional.conv_transpose2d(x, weight, bias, stride=2)
+    grad = torch.randn_like(got)
+    assert grad.is_contiguous(memory_format=torch.channels_last)
+    got_grads = torch.autograd.grad(got, [x, weight, bias], grad)
+    want_grads = torch.autograd.grad(want, [x, weight, bias], grad.contiguous())
+    for a, c in zip(got_grads, want_grads, strict=True):
+        torch.testing.assert_close(a, c, rtol=1e-5, atol=1e-4)
 
 
 @pytest.mark.parametrize(("size", "bias"), [(31, True), (14, True), (6, False), (9, True), (5, False)])
