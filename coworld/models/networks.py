@@ -34,6 +34,7 @@ __all__ = [
     "LayerNormGRUCell",
     "MLP",
     "check_image_shape",
+    "conv2d",
     "conv2d_stride2",
     "conv_transpose_stride2",
     "depth_to_space",
@@ -322,7 +323,8 @@ class _ConvTransposeStride2(torch.autograd.Function):
     backward, whose input gradient is a strided convolution and whose weight gradient correlates the input with
     the interleaved output gradient: they take only the kernel's real taps, where the phases' backward also runs
     over the taps a kernel of odd size pads with and over the padded border (at the decoder's second layer, 5 x 5
-    to 13 x 13 with kernel 5, 2.8x the multiply-adds), and it needs no de-interleaved copy of the gradient."""
+    to 13 x 13 with kernel 5, 2.8x the multiply-adds), and it needs no de-interleaved copy of the gradient. The bias
+    gradient is summed apart (:func:`_bias_grad`), not by that backward."""
 
     @staticmethod
     def forward(ctx: Any, x: Tensor, weight: Tensor, bias: Tensor | None) -> Tensor:
