@@ -489,7 +489,7 @@ class ConvEncoder(nn.Module):
         out = self.net(image.reshape(-1, *image.shape[-3:]))
         return out.reshape(*batch, self.embed_size)
 
-    def from_phases(self, phases: Tensor) -> Tensor:
+    def from_phases(self, phases: Tensor, pixels: bool = False) -> Tensor:
         """The same embedding from the image's 2 x 2 phases, :func:`space_to_depth` as channels first:
         ``(..., 4 C, 32, 32)`` -> ``(..., embed_size)``.
 
@@ -497,12 +497,13 @@ class ConvEncoder(nn.Module):
         weights rearranged (about as fast on a CPU as the 3-channel strided one); the world model's loss
         rearranges its images into phases once, for this and for the decoder's target.
 
-        ``phases`` is float in ``[-0.5, 0.5]`` (:func:`~coworld.models.world_model.preprocess_phases`), or the uint8
-        pixels' phases: the first layer then takes the scaling ``x / 255 - 0.5`` into its weights and bias (it pads
-        nothing, so every output sees every tap), and the input needs one float copy, not three passes. (Leaving
-        out of that copy the phases' last row and column, which feed only the first layer's 31st output row and
-        column, which the second layer never reads, saved 6% of the first layer's work but raised the peak memory
-        with tcmalloc: at the authors' widths on batch 40 x 50, 3.0 against 2.5 GiB.)
+        ``phases`` is float in ``[-0.5, 0.5]`` (:func:`~coworld.models.world_model.preprocess_phases`), or, with
+        ``pixels`` (always so for uint8), the pixels' values 0 to 255: the first layer then takes the scaling
+        ``x / 255 - 0.5`` into its weights and bias (it pads nothing, so every output sees every tap), and uint8
+        input needs one float copy, not three passes. (Leaving out of that copy the phases' last row and column,
+        which feed only the first layer's 31st output row and column, which the second layer never reads, saved 6%
+        of the first layer's work but raised the peak memory with tcmalloc: at the authors' widths on batch
+        40 x 50, 3.0 against 2.5 GiB.)
         """
         batch = phases.shape[:-3]
         first = self.net[0]
@@ -512,7 +513,7 @@ class ConvEncoder(nn.Module):
         weight = weight.reshape(out_channels, 4 * channels, 2, 2)
         bias = first.bias
         x = phases.reshape(-1, *phases.shape[-3:])
-        if x.dtype == torch.uint8:  # conv(w, x / 255 - 0.5) = conv(w / 255, x) - 0.5 * sum(w)
+        if pixels or x.dtype == torch.uint8:  # conv(w, x / 255 - 0.5) = conv(w / 255, x) - 0.5 * sum(w)
             bias = bias - 0.5 * weight.sum(dim=(1, 2, 3))
             weight = weight / 255.0
             x = x.to(weight.dtype)

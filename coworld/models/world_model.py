@@ -126,17 +126,22 @@ class WorldModel(nn.Module):
         """The batch with its images laid out as :meth:`loss` and :meth:`observe` read them, work that depends on
         no weight (so it can run ahead, on another thread, while an update runs; :mod:`coworld.data.prefetch`).
 
-        ``image`` ``(B, T, H, W, C)`` is replaced by ``phases``, its uint8 2 x 2 phases
-        (:func:`~coworld.models.networks.space_to_depth`, ``(B, T, H / 2, W / 2, 4 C)``), and, where the decoder
-        ends in 4 x 4 phases, ``target``, theirs ``(B, T, H / 4, W / 4, 16 C)``; the other entries are kept. A
-        prepared batch is returned as it is.
+        ``image`` ``(B, T, H, W, C)`` is replaced by ``phases``, its 2 x 2 phases
+        (:func:`~coworld.models.networks.space_to_depth`, ``(B, T, H / 2, W / 2, 4 C)``), the encoder's input, and
+        ``target``, the uint8 pixels as the decoder ends: the same 2 x 2 phases, or theirs (4 x 4,
+        ``(B, T, H / 4, W / 4, 16 C)``); the other entries are kept. A prepared batch is returned as it is.
+
+        On a CPU ``phases`` holds the pixels' values as float32 (the encoder's first layer scales them), so the
+        update does not spend a pass over its largest input converting it: 3.0 ms of a 240 ms update at the tiny
+        preset, which the prefetch thread takes on the other core instead (benchmarks/RESULTS.md, "Ninth pass");
+        elsewhere it stays uint8, a quarter of the memory, and the first layer converts it.
         """
         if "phases" in batch:
             return batch
         out = {key: value for key, value in batch.items() if key != "image"}
-        out["phases"] = space_to_depth(batch["image"])
-        if self.decoder.phase_levels == 2:
-            out["target"] = space_to_depth(out["phases"])
+        phases = space_to_depth(batch["image"])
+        out["target"] = space_to_depth(phases) if self.decoder.phase_levels == 2 else phases
+        out["phases"] = phases.float() if phases.device.type == "cpu" else phases
         return out
 
     def observe(self, batch: dict[str, Tensor], state: State | None = None) -> tuple[State, State, Tensor]:
@@ -150,9 +155,9 @@ class WorldModel(nn.Module):
         return self._observe(phases.movedim(-1, -3), batch, state)
 
     def _observe(self, phases: Tensor, batch: dict[str, Tensor], state: State | None) -> tuple[State, State, Tensor]:
-        """:meth:`observe` from images already rearranged into phases (:func:`preprocess_phases`, or the uint8
-        pixels' phases as channels first, which :meth:`ConvEncoder.from_phases` scales in its first layer)."""
-        embed = self.encoder.from_phases(phases)
+        """:meth:`observe` from the pixels' phases as channels first (uint8, or their values as float, as
+        :meth:`prepare` leaves them), which :meth:`ConvEncoder.from_phases` scales in its first layer."""
+        embed = self.encoder.from_phases(phases, pixels=True)
         post, prior = self.rssm.observe(embed, batch["action"], batch["is_first"], state)
         return post, prior, embed
 
@@ -171,12 +176,10 @@ class WorldModel(nn.Module):
         cfg = self.config
         batch_size, length = batch["action"].shape[:2]
         # A sum over pixels: the decoder's phases give the loss of the whole images, without interleaving them.
-        # The uint8 2 x 2 phases: the encoder's first layer and the loss scale them; the target is rearranged again
-        # where the decoder ends in 4 x 4 phases.
+        # The pixels' 2 x 2 phases: the encoder's first layer scales them, and the loss its uint8 target.
         batch = self.prepare(batch)
-        pixels = batch["phases"]
-        target = batch.get("target", pixels)
-        post, prior, embed = self._observe(pixels.movedim(-1, -3), batch, None)
+        target = batch["target"]
+        post, prior, embed = self._observe(batch["phases"].movedim(-1, -3), batch, None)
         feat = self.features(post)
         reward = self.reward_head(feat)
         terms: dict[str, Tensor] = {
