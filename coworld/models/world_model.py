@@ -132,9 +132,9 @@ class WorldModel(nn.Module):
         ``(B, T, H / 4, W / 4, 16 C)``); the other entries are kept. A prepared batch is returned as it is.
 
         On a CPU ``phases`` holds the pixels' values as float32 (the encoder's first layer scales them), so the
-        update does not spend a pass over its largest input converting it: 3.0 ms of a 240 ms update at the tiny
-        preset, which the prefetch thread takes on the other core instead (benchmarks/RESULTS.md, "Ninth pass");
-        elsewhere it stays uint8, a quarter of the memory, and the first layer converts it.
+        update does not spend a pass over its largest input converting it (2.2-5.5 ms of a 238-249 ms update at the
+        tiny preset; benchmarks/prepared_phases_ab.py): the prefetch thread does it on the other core instead.
+        Elsewhere it stays uint8, a quarter of the memory, and the first layer converts it.
         """
         if "phases" in batch:
             return batch

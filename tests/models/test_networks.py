@@ -142,6 +142,11 @@ def test_encoder_from_phases_matches_the_image_path(tiny: Config) -> None:
     torch.testing.assert_close(raw, exact)
     for a, b in zip(torch.autograd.grad(raw, params, grad), torch.autograd.grad(exact, params, grad), strict=True):
         torch.testing.assert_close(a, b)
+    # The pixels' values as float (a prepared batch on a CPU) give the uint8 path's numbers exactly; without
+    # `pixels` the same floats would be read as already scaled.
+    values = space_to_depth(image).movedim(-1, -3).double()
+    assert torch.equal(encoder.from_phases(values, pixels=True), raw)
+    assert not torch.allclose(encoder.from_phases(values), raw)
 
 
 # The tiny preset's depth decodes to 4 x 4 phases, a wider decoder to 2 x 2 phases.
