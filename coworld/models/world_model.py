@@ -150,14 +150,12 @@ class WorldModel(nn.Module):
         Returns ``(post, prior, embed)``: states with batch ``(B, T)`` (``deter (B, T, D)``,
         ``logits``/``stoch (B, T, S, K)``) and the embeddings ``(B, T, E)``. The recurrent state and the previous
         action are zeroed where ``is_first``; ``state`` (batch ``(B,)``) continues from an earlier chunk.
+
+        The encoder reads the pixels' 2 x 2 phases (uint8, or their values as float, as :meth:`prepare` leaves them
+        on a CPU), which :meth:`ConvEncoder.from_phases` scales in its first layer.
         """
         phases = batch["phases"] if "phases" in batch else space_to_depth(batch["image"])
-        return self._observe(phases.movedim(-1, -3), batch, state)
-
-    def _observe(self, phases: Tensor, batch: dict[str, Tensor], state: State | None) -> tuple[State, State, Tensor]:
-        """:meth:`observe` from the pixels' phases as channels first (uint8, or their values as float, as
-        :meth:`prepare` leaves them), which :meth:`ConvEncoder.from_phases` scales in its first layer."""
-        embed = self.encoder.from_phases(phases, pixels=True)
+        embed = self.encoder.from_phases(phases.movedim(-1, -3), pixels=True)
         post, prior = self.rssm.observe(embed, batch["action"], batch["is_first"], state)
         return post, prior, embed
 
@@ -179,7 +177,7 @@ class WorldModel(nn.Module):
         # The pixels' 2 x 2 phases: the encoder's first layer scales them, and the loss its uint8 target.
         batch = self.prepare(batch)
         target = batch["target"]
-        post, prior, embed = self._observe(batch["phases"].movedim(-1, -3), batch, None)
+        post, prior, embed = self.observe(batch)
         feat = self.features(post)
         reward = self.reward_head(feat)
         terms: dict[str, Tensor] = {
