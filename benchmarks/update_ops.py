@@ -25,11 +25,13 @@ Rows:
   :func:`~coworld.models.networks.stride2_phases` of the interleaved input, forward and backward, at batch 512, from
   8, 16 and 32 input channels (the decoder takes the faster: ``_PHASES4_BELOW_DEPTH``);
 - ``bias gradient apart``: a convolution's backward with the bias gradient summed apart
-  (:func:`coworld.models.networks._bias_grad`) against PyTorch's backward computing it, at the decoder's transposed
+  (:func:`coworld.models.networks._bias_grad`, the faster form on this machine) against PyTorch's backward computing
+  it, at the decoder's transposed
   layers, its phase convolutions and the encoder's first layer, at the tiny preset's widths on batch 512 and the
   authors' (depth 32) on batch 800;
-- ``bias gradient sum``: :func:`~coworld.models.networks._bias_grad`'s matrix-vector product against
-  ``grad.sum((0, 2, 3))`` on channels-last gradients of 8 to 64 channels.
+- ``bias gradient sum``: :func:`~coworld.models.networks._bias_grad_rows`'s matrix-vector product against
+  ``grad.sum((0, 2, 3))`` on channels-last gradients of 8 to 48 channels (:func:`~coworld.models.networks._bias_grad`
+  takes whichever is faster here, per shape).
 
 Each cell is the median of ``--repeats`` timings (thread CPU time) after 3 warm-up calls.
 """
@@ -48,6 +50,7 @@ from coworld.models.distributions import exponential_noise, log_softmax
 from coworld.models.networks import (
     ELU,
     _bias_grad,
+    _bias_grad_rows,
     _stride2_backward,
     _transposed_input_grad,
     conv_transpose_stride2,
@@ -260,10 +263,10 @@ def bias_rows(repeats: int) -> None:
         )
     for shape in ((512, 8, 31, 31), (512, 12, 32, 32), (512, 16, 13, 13), (512, 32, 15, 15), (512, 48, 16, 16)):
         grad = torch.randn(shape).contiguous(memory_format=torch.channels_last)
-        assert torch.allclose(_bias_grad(grad, True), grad.sum((0, 2, 3)), rtol=1e-4, atol=1e-2)
+        assert torch.allclose(_bias_grad_rows(grad), grad.sum((0, 2, 3)), rtol=1e-4, atol=1e-2)
         row(
             f"bias gradient sum, {' x '.join(map(str, shape))}",
-            median_us(lambda g=grad: _bias_grad(g, True), repeats),
+            median_us(lambda g=grad: _bias_grad_rows(g), repeats),
             median_us(lambda g=grad: g.sum((0, 2, 3)), repeats),
         )
 

@@ -26,6 +26,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from coworld.errors import ConfigError, CoworldError
+from coworld.models import autotune
 
 __all__ = [
     "ConvDecoder",
@@ -347,7 +348,7 @@ def _keep_for_backward(ctx: Any, x: Tensor, weight: Tensor, bias: Tensor | None,
 
 
 _BIAS_ROW = 128
-"""Numbers per row of :func:`_bias_grad`'s matrix-vector product (rounded up to a multiple of the channels)."""
+"""Numbers per row of :func:`_bias_grad_rows`'s matrix-vector product (rounded up to a multiple of the channels)."""
 
 
 def _bias_grad(grad: Tensor, needed: bool) -> Tensor | None:
@@ -358,9 +359,11 @@ def _bias_grad(grad: Tensor, needed: bool) -> Tensor | None:
     output is channels last: the decoder's transposed second layer's backward takes 5.1 ms with it summed apart
     against 7.9 at the tiny preset's batch of 512 frames, and at the authors' widths on 800 frames the second and
     third layers' take 114 and 254 ms against 173 and 365 (benchmarks/update_ops.py, "bias gradient apart"). A
-    float32 channels-last gradient on a CPU is summed as a ones-vector times its numbers in rows of a multiple of
-    ``C`` (at least :data:`_BIAS_ROW` numbers), then the rows' channels folded: 0.9x ``grad.sum((0, 2, 3))`` at 8
-    and 32 channels, 1.6-4.8x at 12, 16 and 48, where PyTorch's reduction runs below the memory's speed.
+    float32 channels-last gradient on a CPU is summed by whichever of two forms is faster on this machine for its
+    shape (:func:`coworld.models.autotune.fastest`): :func:`_bias_grad_rows`, or ``grad.sum((0, 2, 3))``. One
+    Intel Xeon ran the first 1.6-4.8x faster at 12, 16 and 48 channels, where PyTorch's reduction ran below the
+    memory's speed; one AMD EPYC ran it 1.3-10x slower at 8, 16, 32 and 48 (benchmarks/RESULTS.md, "Eighth pass" and
+    "Eleventh pass").
     """
     if not needed:
         return None
@@ -370,6 +373,13 @@ def _bias_grad(grad: Tensor, needed: bool) -> Tensor | None:
         or not grad.is_contiguous(memory_format=torch.channels_last)
     ):
         return grad.sum((0, 2, 3))
+    forms = {"rows": lambda: _bias_grad_rows(grad), "sum": lambda: grad.sum((0, 2, 3))}
+    return forms[autotune.fastest(("bias_grad", tuple(grad.shape)), forms, default="rows")]()
+
+
+def _bias_grad_rows(grad: Tensor) -> Tensor:
+    """``grad.sum((0, 2, 3))`` of a channels-last gradient ``(N, C, H, W)`` as a ones-vector times its numbers in
+    rows of a multiple of ``C`` (at least :data:`_BIAS_ROW` numbers), then the rows' channels folded."""
     channels = grad.shape[1]
     flat = grad.permute(0, 2, 3, 1).reshape(-1)  # the same memory, in its order
     width = math.lcm(channels, _BIAS_ROW)

@@ -7,6 +7,7 @@ import torch
 
 from coworld.config import Config
 from coworld.errors import CoworldError
+from coworld.models import autotune
 from coworld.models.networks import (
     ELU,
     MLP,
@@ -206,11 +207,19 @@ def test_stride2_phases4_is_the_transposed_convolution_from_phases_to_phases(row
 @pytest.mark.parametrize(("channels", "size", "padding"), [(8, 5, 0), (12, 7, 1), (48, 3, 2), (96, 2, 0)])
 @pytest.mark.parametrize("layout", [torch.channels_last, torch.contiguous_format])
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("form", ["rows", "sum"])
 def test_conv2d_is_the_convolution_with_its_gradients(
-    channels: int, size: int, padding: int, layout: torch.memory_format, dtype: torch.dtype
+    channels: int,
+    size: int,
+    padding: int,
+    layout: torch.memory_format,
+    dtype: torch.dtype,
+    form: str,
+    monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     """:func:`conv2d` takes the bias gradient apart from PyTorch's backward (on a float32 channels-last gradient
-    as a matrix-vector product): PyTorch's values and gradients, without a bias too."""
+    in either form, as a matrix-vector product or a plain sum): PyTorch's values and gradients, without a bias too."""
+    monkeypatch.setattr(autotune, "fastest", lambda key, forms, default: form)
     x = torch.randn(3, 5, size, size, dtype=dtype).contiguous(memory_format=layout).requires_grad_()
     weight = torch.randn(channels, 5, 2, 2, dtype=dtype, requires_grad=True)
     b = torch.randn(channels, dtype=dtype, requires_grad=True)
@@ -230,9 +239,13 @@ def test_conv2d_is_the_convolution_with_its_gradients(
 
 
 @pytest.mark.parametrize(("c_out", "size"), [(16, 5), (12, 3)])
-def test_conv_transpose_stride2_bias_gradient_in_float32(c_out: int, size: int) -> None:
-    """The transposed convolution's bias gradient, summed apart as a matrix-vector product on a float32
-    channels-last gradient, is PyTorch's."""
+@pytest.mark.parametrize("form", ["rows", "sum"])
+def test_conv_transpose_stride2_bias_gradient_in_float32(
+    c_out: int, size: int, form: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The transposed convolution's bias gradient, summed apart (as a matrix-vector product or a plain sum) on a
+    float32 channels-last gradient, is PyTorch's."""
+    monkeypatch.setattr(autotune, "fastest", lambda key, forms, default: form)
     x = torch.randn(4, 6, size, size).contiguous(memory_format=torch.channels_last).requires_grad_()
     weight = torch.randn(6, c_out, 5, 5, requires_grad=True)
     bias = torch.randn(c_out, requires_grad=True)
