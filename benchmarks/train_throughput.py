@@ -9,6 +9,8 @@ Examples::
     python benchmarks/train_throughput.py --preset paper --device cuda --compare   # fp32 / bf16, eager / compiled
     python benchmarks/train_throughput.py --profile --threads 1 --updates 3 --set train.batch_size=16 \
         --set train.seq_len=32    # where an update's time goes, op by op
+    python benchmarks/train_throughput.py --roofline --threads 1 --updates 5 --set train.batch_size=16 \
+        --set train.seq_len=32    # and how close the counted work runs to this machine's matrix-product rate
     python benchmarks/train_throughput.py --threads 1 --set train.batch_size=16 --set train.seq_len=32 \
         --interleave /tmp/base --blocks 4 --updates 6    # this tree against another checkout, side by side
     python benchmarks/train_throughput.py --threads 1 --interleave /tmp/base --dreamerv3 /path/to/dreamerv3-torch \
@@ -56,6 +58,7 @@ import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -535,6 +538,55 @@ def profile(args: argparse.Namespace) -> None:
             agent.train(batch)
     print(f"{args.updates} updates; divide the times by {args.updates} for one")
     print(prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=25))
+    if args.roofline:
+        with FlopCounterMode(display=False) as counter:
+            agent.train(batch)
+        print(roofline(prof, counter.get_flop_counts()["Global"], args.updates, args.threads))
+
+
+ROOFLINE_CLASSES = {
+    "convolution forward": ("aten.convolution", "aten::convolution"),
+    "convolution backward": ("aten.convolution_backward", "aten::convolution_backward"),
+    "matrix products": ("aten.mm aten.addmm aten.bmm aten.baddbmm", "aten::mm aten::addmm aten::bmm aten::baddbmm"),
+}
+"""What ``--roofline`` counts: class -> (``FlopCounterMode``'s op names, the profiler's event names), space-separated.
+The profiler's time of an event is its total, children included (``aten::convolution`` runs its kernel in a child)."""
+
+
+def roofline(prof: Any, flops: dict[Any, int], updates: int, threads: int) -> str:
+    """The counted work of one update (``flops``: ``FlopCounterMode``'s global counts) beside the profiled time of
+    the same ops over ``updates`` updates (``prof``), the rate each class ran at, this machine's single-precision
+    matrix-product rate on ``threads`` threads, and the time the counted work would take at that rate."""
+    events = {event.key: event for event in prof.key_averages()}
+    total_ms = sum(event.self_cpu_time_total for event in events.values()) / 1e3 / updates
+    lines = [f"{'class':<24}{'GMAC':>8}{'ms/update':>11}{'GMAC/s':>8}"]
+    macs_all = ms_all = 0.0
+    for label, (counted, profiled) in ROOFLINE_CLASSES.items():
+        macs = sum(n for op, n in flops.items() if str(op) in counted.split()) / 2e9
+        ms = sum(events[name].cpu_time_total for name in profiled.split() if name in events) / 1e3 / updates
+        macs_all, ms_all = macs_all + macs, ms_all + ms
+        lines.append(f"{label:<24}{macs:>8.3f}{ms:>11.1f}{macs / ms * 1e3 if ms else 0.0:>8.1f}")
+    lines.append(f"{'all counted':<24}{macs_all:>8.3f}{ms_all:>11.1f}{macs_all / ms_all * 1e3:>8.1f}")
+    lines.append(f"{'the rest (not counted)':<24}{'':>8}{total_ms - ms_all:>11.1f}")
+    lines.append(f"{'the update (profiled)':<24}{'':>8}{total_ms:>11.1f}")
+    peak = matmul_rate(2048)
+    lines.append(
+        f"float32 2048^3 matrix product on {threads} thread(s): {peak:.1f} GMAC/s; the counted work at that rate: "
+        f"{macs_all / peak * 1e3:.1f} ms an update"
+    )
+    return "\n".join(lines)
+
+
+def matmul_rate(n: int, repeats: int = 5) -> float:
+    """GMAC/s of the best of ``repeats`` float32 ``n x n`` matrix products on torch's current threads."""
+    a, b = torch.randn(n, n), torch.randn(n, n)
+    a @ b
+    best = float("inf")
+    for _ in range(repeats):
+        start = time.perf_counter()
+        a @ b
+        best = min(best, time.perf_counter() - start)
+    return n**3 / best / 1e9
 
 
 def main() -> None:
@@ -585,6 +637,12 @@ def main() -> None:
         "(torch.utils.flop_counter: matrix products and convolutions, forward and backward)",
     )
     parser.add_argument("--profile", action="store_true", help="torch.profiler table of whole DreamerV2 updates")
+    parser.add_argument(
+        "--roofline",
+        action="store_true",
+        help="--profile, then the counted work of an update by class beside its profiled time, and the time that work "
+        "would take at this machine's float32 matrix-product rate",
+    )
     parser.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--allocator", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
@@ -594,7 +652,7 @@ def main() -> None:
         return interleave(args)
     torch.set_num_threads(args.threads)
     torch.manual_seed(0)
-    if args.profile:
+    if args.profile or args.roofline:
         return profile(args)
     if args.algo in ("others", "all"):
         print(f"preset={args.preset} device={args.device} threads={args.threads}")
