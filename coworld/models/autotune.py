@@ -19,6 +19,8 @@ import threading
 import time
 from collections.abc import Callable, Hashable, Mapping
 
+import torch
+
 __all__ = ["chosen", "fastest"]
 
 MARGIN = 0.1
@@ -42,12 +44,12 @@ def fastest(key: Hashable, forms: Mapping[str, Callable[[], object]], default: s
     """The name of the fastest of ``forms`` (name -> a call of that form on the inputs at hand) for ``key``.
 
     The first call with ``key`` runs every form ``1 + REPEATS`` times and keeps the result; later calls only look it
-    up. ``default`` is the form taken unless another is :data:`MARGIN` faster, or when timing is off
-    (:func:`enabled`)."""
+    up. ``default`` is the form taken unless another is :data:`MARGIN` faster, when timing is off (:func:`enabled`),
+    and while ``torch.compile`` traces (timing a trace measures nothing)."""
     choice = _choices.get(key)
     if choice is not None:
         return choice
-    if not enabled():
+    if not enabled() or torch.compiler.is_compiling():
         return default
     with _lock:  # one thread times at a time, so that two timings do not share the core
         if key not in _choices:

@@ -65,3 +65,10 @@ def test_coworld_autotune_0_times_nothing_and_takes_the_default(
     assert clock.calls == {} and autotune.chosen() == {}
     monkeypatch.setenv("COWORLD_AUTOTUNE", "1")
     assert autotune.fastest("op", forms, default="a") == "b"
+
+
+def test_nothing_is_timed_while_torch_compile_traces(clock: FakeClock, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(autotune.torch.compiler, "is_compiling", lambda: True)
+    forms = {"a": clock.form("a", 2.0), "b": clock.form("b", 1.0)}
+    assert autotune.fastest("op", forms, default="a") == "a"
+    assert clock.calls == {} and autotune.chosen() == {}
