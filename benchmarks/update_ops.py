@@ -26,9 +26,8 @@ Rows:
   8, 16 and 32 input channels (the decoder takes the faster: ``_PHASES4_BELOW_DEPTH``);
 - ``bias gradient apart``: a convolution's backward with the bias gradient summed apart
   (:func:`coworld.models.networks._bias_grad`, the faster form on this machine) against PyTorch's backward computing
-  it, at the decoder's transposed
-  layers, its phase convolutions and the encoder's first layer, at the tiny preset's widths on batch 512 and the
-  authors' (depth 32) on batch 800;
+  it, at the decoder's transposed layers, its phase convolutions and the encoder's first layer, at the tiny preset's
+  widths on batch 512 and the authors' (depth 32) on batch 800;
 - ``bias gradient sum``: :func:`~coworld.models.networks._bias_grad_rows`'s matrix-vector product against
   ``grad.sum((0, 2, 3))`` on channels-last gradients of 8 to 48 channels (:func:`~coworld.models.networks._bias_grad`
   takes whichever is faster here, per shape).

@@ -21,7 +21,7 @@ from collections.abc import Callable, Hashable, Mapping
 
 import torch
 
-__all__ = ["chosen", "fastest"]
+__all__ = ["chosen", "enabled", "fastest"]
 
 MARGIN = 0.1
 """Another form replaces the default only when its best time is at least this fraction faster: forms within it are
