@@ -150,30 +150,35 @@ def test_encoder_from_phases_matches_the_image_path(tiny: Config) -> None:
     assert not torch.allclose(encoder.from_phases(values), raw)
 
 
-# The tiny preset's depth decodes to 4 x 4 phases, a wider decoder to 2 x 2 phases.
-@pytest.mark.parametrize(("depth", "levels"), [(8, 2), (16, 1)])
-def test_decoder_phases_match_the_plain_layers(depth: int, levels: int) -> None:
+# The tiny preset's depth decodes to 4 x 4 phases, a wider decoder to 2 x 2 phases; on 6 feature vectors the linear
+# layer runs apart from the first transposed convolution, on 24 (at depth 8) their weights are multiplied first.
+@pytest.mark.parametrize(
+    ("depth", "levels", "steps", "folded"), [(8, 2, 3, False), (8, 2, 12, True), (16, 1, 3, False)]
+)
+def test_decoder_phases_match_the_plain_layers(depth: int, levels: int, steps: int, folded: bool) -> None:
     torch.manual_seed(0)
     decoder = ConvDecoder(feat_size=17, channels=3, depth=depth).double()
     assert decoder.phase_levels == levels
-    feat = torch.randn(2, 3, 17, dtype=torch.float64, requires_grad=True)
+    rows = 2 * steps
+    assert decoder.folds_linear(rows) == folded
+    feat = torch.randn(2, steps, 17, dtype=torch.float64, requires_grad=True)
 
     def plain() -> torch.Tensor:  # nn.ConvTranspose2d layers one after another
-        return decoder.net(decoder.linear(feat).reshape(6, 32 * depth, 1, 1)).reshape(2, 3, 3, 64, 64)
+        return decoder.net(decoder.linear(feat).reshape(rows, 32 * depth, 1, 1)).reshape(2, steps, 3, 64, 64)
 
     torch.testing.assert_close(decoder(feat), plain())
     out = decoder.phases(feat)
-    assert out.shape == (2, 3, 3 * 4**levels, 64 // 2**levels, 64 // 2**levels)
+    assert out.shape == (2, steps, 3 * 4**levels, 64 // 2**levels, 64 // 2**levels)
     want = plain().movedim(-3, -1)
     for _ in range(levels):
         want = space_to_depth(want)
     torch.testing.assert_close(out, want.movedim(-1, -3))
     grad = torch.randn_like(out)
     got_grads = torch.autograd.grad(out, [feat, *decoder.parameters()], grad)
-    plain_grad = grad.reshape(6, *out.shape[2:])
+    plain_grad = grad.reshape(rows, *out.shape[2:])
     for _ in range(levels):
         plain_grad = depth_to_space(plain_grad)
-    want_grads = torch.autograd.grad(plain(), [feat, *decoder.parameters()], plain_grad.reshape(2, 3, 3, 64, 64))
+    want_grads = torch.autograd.grad(plain(), [feat, *decoder.parameters()], plain_grad.reshape(2, steps, 3, 64, 64))
     for a, b in zip(got_grads, want_grads, strict=True):
         torch.testing.assert_close(a, b)
     # An offset rides on the last layer's bias: the same phases plus the offset, the same gradients.
