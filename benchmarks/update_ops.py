@@ -21,6 +21,9 @@ Rows:
 - ``adamw``: the world model's AdamW step at the tiny preset, fused against PyTorch's default (``foreach``);
 - ``decoder layer 2`` / ``3``: :func:`coworld.models.networks.conv_transpose_stride2` forward and backward, its
   backward PyTorch's own transposed-convolution backward against the phase convolution's autograd, at batch 512;
+- ``decoder linear + layer 1 folded``: :meth:`coworld.models.networks.ConvDecoder._first_layer` with the linear
+  layer's weights multiplied into the first transposed convolution's, against the two matrix products, forward and
+  backward, at the tiny preset's sizes on 512 rows and the authors' (depth 32, 250 features) on 800;
 - ``decoder layer 4``: :func:`coworld.models.networks.stride2_phases4` (2 x 2 phases in, 4 x 4 phases out) against
   :func:`~coworld.models.networks.stride2_phases` of the interleaved input, forward and backward, at batch 512, from
   8, 16 and 32 input channels (the decoder takes the faster: ``_PHASES4_BELOW_DEPTH``);
@@ -38,6 +41,7 @@ Each cell is the median of ``--repeats`` timings (thread CPU time) after 3 warm-
 from __future__ import annotations
 
 import argparse
+import copy
 import statistics
 import time
 from collections.abc import Callable
@@ -48,6 +52,7 @@ from coworld.config import make_config
 from coworld.models.distributions import exponential_noise, log_softmax
 from coworld.models.networks import (
     ELU,
+    ConvDecoder,
     _bias_grad,
     _bias_grad_rows,
     _stride2_backward,
@@ -197,6 +202,30 @@ def main() -> None:
 
         row(
             f"decoder layer {layer}, forward + backward", median_us(ours, args.repeats), median_us(theirs, args.repeats)
+        )
+
+    # The decoder's linear layer and its first transposed convolution (1 x 1 -> 5 x 5, a matrix product): their
+    # weights multiplied first where ConvDecoder.folds_linear says so, against the two products one after the other.
+    for rows, feat_size, depth in ((512, 128, 8), (800, 250, 32)):
+        folded = ConvDecoder(feat_size=feat_size, channels=3, depth=depth)
+        assert folded.folds_linear(rows)
+        two = copy.deepcopy(folded)
+        two.folds_linear = lambda rows: False  # type: ignore[method-assign]
+        x = torch.randn(rows, feat_size, requires_grad=True)
+        grad = torch.randn(rows, 32 * depth * 25 // 8)  # the first layer's 4 d channels at 5 x 5
+
+        def ours(decoder: ConvDecoder = folded, x: torch.Tensor = x, grad: torch.Tensor = grad) -> None:
+            out = decoder._first_layer(x)
+            torch.autograd.grad(out, [x, *decoder.parameters()], grad.view(out.shape), allow_unused=True)
+
+        def plain(decoder: ConvDecoder = two, x: torch.Tensor = x, grad: torch.Tensor = grad) -> None:
+            out = decoder._first_layer(x)
+            torch.autograd.grad(out, [x, *decoder.parameters()], grad.view(out.shape), allow_unused=True)
+
+        row(
+            f"decoder linear + layer 1 folded, {rows} x {feat_size}, d {depth}",
+            median_us(ours, args.repeats),
+            median_us(plain, args.repeats),
         )
 
     # The decoder's last layer (d -> 3 channels, 30 x 30 -> 64 x 64; d = 8 at the tiny preset): from the layer
