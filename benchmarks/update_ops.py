@@ -214,18 +214,14 @@ def main() -> None:
         x = torch.randn(rows, feat_size, requires_grad=True)
         grad = torch.randn(rows, 32 * depth * 25 // 8)  # the first layer's 4 d channels at 5 x 5
 
-        def ours(decoder: ConvDecoder = folded, x: torch.Tensor = x, grad: torch.Tensor = grad) -> None:
-            out = decoder._first_layer(x)
-            torch.autograd.grad(out, [x, *decoder.parameters()], grad.view(out.shape), allow_unused=True)
-
-        def plain(decoder: ConvDecoder = two, x: torch.Tensor = x, grad: torch.Tensor = grad) -> None:
+        def first_layer(decoder: ConvDecoder, x: torch.Tensor = x, grad: torch.Tensor = grad) -> None:
             out = decoder._first_layer(x)
             torch.autograd.grad(out, [x, *decoder.parameters()], grad.view(out.shape), allow_unused=True)
 
         row(
             f"decoder linear + layer 1 folded, {rows} x {feat_size}, d {depth}",
-            median_us(ours, args.repeats),
-            median_us(plain, args.repeats),
+            median_us(lambda d=folded: first_layer(d), args.repeats),
+            median_us(lambda d=two: first_layer(d), args.repeats),
         )
 
     # The decoder's last layer (d -> 3 channels, 30 x 30 -> 64 x 64; d = 8 at the tiny preset): from the layer
