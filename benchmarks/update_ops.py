@@ -212,11 +212,10 @@ def main() -> None:
         two = copy.deepcopy(folded)
         two.folds_linear = lambda rows: False  # type: ignore[method-assign]
         x = torch.randn(rows, feat_size, requires_grad=True)
-        grad = torch.randn(rows, 32 * depth * 25 // 8)  # the first layer's 4 d channels at 5 x 5
+        grad = torch.randn_like(folded._first_layer(x.detach()))
 
         def first_layer(decoder: ConvDecoder, x: torch.Tensor = x, grad: torch.Tensor = grad) -> None:
-            out = decoder._first_layer(x)
-            torch.autograd.grad(out, [x, *decoder.parameters()], grad.view(out.shape), allow_unused=True)
+            torch.autograd.grad(decoder._first_layer(x), [x, *decoder.parameters()], grad, allow_unused=True)
 
         row(
             f"decoder linear + layer 1 folded, {rows} x {feat_size}, d {depth}",

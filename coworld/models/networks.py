@@ -305,11 +305,25 @@ def conv_transpose_stride2(x: Tensor, weight: Tensor, bias: Tensor | None) -> Te
     c_in, c_out, kernel, _ = weight.shape
     n, _, height, width = x.shape
     if height == 1 and width == 1:  # one matrix product, its output channels last (as the next layer reads it)
-        taps = weight.permute(0, 2, 3, 1).reshape(c_in, kernel * kernel * c_out)
+        taps = _taps_1x1(weight)
         flat = x.reshape(n, c_in)
         out = flat @ taps if bias is None else torch.addmm(bias.repeat(kernel * kernel), flat, taps)
-        return out.reshape(n, kernel, kernel, c_out).permute(0, 3, 1, 2)
+        return _pixels_1x1(out, weight)
     return _ConvTransposeStride2.apply(x, weight, bias)
+
+
+def _taps_1x1(weight: Tensor) -> Tensor:
+    """A transposed convolution's weight ``(C_in, C_out, K, K)`` as the matrix ``(C_in, K K C_out)`` that maps a 1 x 1
+    input to its output's pixels, channels last."""
+    c_in, c_out, kernel, _ = weight.shape
+    return weight.permute(0, 2, 3, 1).reshape(c_in, kernel * kernel * c_out)
+
+
+def _pixels_1x1(out: Tensor, weight: Tensor) -> Tensor:
+    """The rows ``(N, K K C_out)`` of a 1 x 1 input times :func:`_taps_1x1` as the image ``(N, C_out, K, K)``
+    (channels last in memory)."""
+    _, c_out, kernel, _ = weight.shape
+    return out.reshape(-1, kernel, kernel, c_out).permute(0, 3, 1, 2)
 
 
 def _phases_interleaved(x: Tensor, weight: Tensor, bias: Tensor | None) -> Tensor:
@@ -587,18 +601,16 @@ class ConvDecoder(nn.Module):
         convolution's taps ``(hidden, K K C)``. Where :meth:`folds_linear` says so the update multiplies the
         weights once and the features once, and autograd's backward then takes the features' gradient through the
         folded weight and the two weights' through the ``feat_size x K K C`` gradient of the folded one: at the
-        tiny preset's sizes on 512 rows (128 features, 256 hidden, 800 outputs) 0.64x the multiply-adds of the
+        tiny preset's sizes on 512 rows (128 features, 256 hidden, 800 outputs) 0.65x the multiply-adds of the
         two layers, forward and backward; at the paper's widths on 800 rows it would be 1.97x, so they run as two.
         """
         first = self.net[0]
-        c_in, c_out, kernel, _ = first.weight.shape
-        taps = first.weight.permute(0, 2, 3, 1).reshape(c_in, kernel * kernel * c_out)  # as conv_transpose_stride2
-        bias = first.bias.repeat(kernel * kernel)
-        if self.folds_linear(feat.shape[0]):
-            out = torch.addmm(torch.addmm(bias, self.linear.bias[None], taps)[0], feat, self.linear.weight.t() @ taps)
-        else:
-            out = torch.addmm(bias, self.linear(feat), taps)
-        return out.reshape(-1, kernel, kernel, c_out).permute(0, 3, 1, 2)
+        if not self.folds_linear(feat.shape[0]):
+            hidden = self.linear(feat)
+            return conv_transpose_stride2(hidden.reshape(*hidden.shape, 1, 1), first.weight, first.bias)
+        taps = _taps_1x1(first.weight)
+        bias = torch.addmm(first.bias.repeat(first.kernel_size[0] * first.kernel_size[1]), self.linear.bias[None], taps)
+        return _pixels_1x1(torch.addmm(bias[0], feat, self.linear.weight.t() @ taps), first.weight)
 
     def phases(self, feat: Tensor, offset: float = 0.0) -> Tensor:
         """The mean image's phases, :func:`space_to_depth` applied :attr:`phase_levels` times (channels first):
