@@ -33,6 +33,7 @@ __all__ = [
     "ELU",
     "ConvEncoder",
     "LayerNormGRUCell",
+    "Linear",
     "MLP",
     "check_image_shape",
     "conv2d",
@@ -41,6 +42,7 @@ __all__ = [
     "depth_to_space",
     "frozen_parameters",
     "glorot_init",
+    "linear",
     "space_to_depth",
     "stride2_phases",
     "stride2_phases4",
@@ -491,6 +493,101 @@ def conv2d_stride2(x: Tensor, weight: Tensor, bias: Tensor | None) -> Tensor:
     return _Conv2dStride2.apply(x, weight, bias)
 
 
+_LINEAR_MIN_ROWS = 2048
+"""From this many rows up :func:`linear` chooses between its two forms; below, ``F.linear`` (a custom autograd
+function's overhead is then a visible part of the product, and those shapes gain nothing)."""
+
+
+def linear(x: Tensor, weight: Tensor, bias: Tensor | None = None) -> Tensor:
+    """``F.linear(x, weight, bias)``, its forward and its input gradient each computed by whichever of two forms is
+    faster on this machine for the shape (:func:`coworld.models.autotune.fastest`): the BLAS matrix product, or
+    oneDNN's 1 x 1 convolution of the rows laid out as pixels.
+
+    The rows ``(N, in)`` are already a channels-last image of ``N`` pixels: viewed as ``B`` images of ``N / B``
+    pixels (``B`` at least 16, so that PyTorch hands the convolution to oneDNN), the product is a 1 x 1 convolution
+    and its output, channels last, is the ``(N, out)`` result, with no copy either way. On one AMD EPYC, whose
+    BLAS (MKL) runs its generic kernels there, oneDNN's took 1.1-1.35x less time forward and 1.1-2.0x less for
+    the input gradient at 7,500 to 120,000 rows of 250-1,224 numbers (the authors' sizes), and was slower at the
+    tiny preset's 512 rows (benchmarks/update_ops.py, "linear"). The weight gradient, about as fast either way,
+    stays a matrix product. The forms differ in summation order only.
+
+    Falls back to ``F.linear`` off the CPU, for other dtypes, under autocast or ``torch.compile``, below
+    :data:`_LINEAR_MIN_ROWS` rows and where no ``B`` from 16 to 64 divides the rows."""
+    rows = x.numel() // x.shape[-1] if x.shape[-1] else 0
+    images = None
+    if (
+        rows >= _LINEAR_MIN_ROWS
+        and x.device.type == "cpu"
+        and x.dtype == weight.dtype == torch.float32
+        and not torch.is_autocast_enabled("cpu")
+        and not torch.compiler.is_compiling()
+    ):
+        images = next((b for b in range(16, 65) if rows % b == 0), None)
+    if images is None:
+        return F.linear(x, weight, bias)
+    out = _Linear.apply(x.reshape(rows, x.shape[-1]), weight, bias, images)
+    return out.reshape(*x.shape[:-1], weight.shape[0])
+
+
+def _as_pixels(rows: Tensor, images: int) -> Tensor:
+    """Rows ``(N, C)`` (contiguous) as ``images`` channels-last images ``(images, C, N / images, 1)``: a view."""
+    n, channels = rows.shape
+    return rows.view(images, n // images, 1, channels).permute(0, 3, 1, 2)
+
+
+def _from_pixels(pixels: Tensor) -> Tensor:
+    """:func:`_as_pixels`'s images back as rows ``(N, C)`` (a view where they are channels last)."""
+    return pixels.permute(0, 2, 3, 1).reshape(-1, pixels.shape[1])
+
+
+class _Linear(torch.autograd.Function):
+    """:func:`linear` on rows ``(N, in)``: forward and input gradient in the faster of their two forms."""
+
+    @staticmethod
+    def forward(ctx: Any, x: Tensor, weight: Tensor, bias: Tensor | None, images: int) -> Tensor:
+        x = x.contiguous()
+        ctx.save_for_backward(x, weight)
+        ctx.images, ctx.has_bias = images, bias is not None
+        kernel = weight[:, :, None, None]
+        forms = {
+            "matmul": lambda: F.linear(x, weight, bias),
+            "onednn": lambda: _from_pixels(F.conv2d(_as_pixels(x, images), kernel, bias)),
+        }
+        return forms[autotune.fastest(("linear", tuple(x.shape), weight.shape[0]), forms, default="matmul")]()
+
+    @staticmethod
+    def backward(ctx: Any, grad: Tensor) -> tuple[Tensor | None, Tensor | None, Tensor | None, None]:
+        x, weight = ctx.saved_tensors
+        needs = ctx.needs_input_grad
+        grad = grad.contiguous()
+        grad_x = grad_weight = grad_bias = None
+        if needs[0]:
+            images, kernel = ctx.images, weight[:, :, None, None]
+
+            def onednn() -> Tensor:
+                pixels = torch.ops.aten.convolution_backward(
+                    _as_pixels(grad, images), _as_pixels(x, images), kernel, None,
+                    [1, 1], [0, 0], [1, 1], False, [0, 0], 1, [True, False, False],
+                )[0]  # fmt: skip
+                return _from_pixels(pixels)
+
+            forms = {"matmul": lambda: grad @ weight, "onednn": onednn}
+            key = ("linear input grad", tuple(grad.shape), x.shape[1])
+            grad_x = forms[autotune.fastest(key, forms, default="matmul")]()
+        if needs[1]:
+            grad_weight = grad.t() @ x
+        if ctx.has_bias and needs[2]:
+            grad_bias = grad.sum(0)
+        return grad_x, grad_weight, grad_bias, None
+
+
+class Linear(nn.Linear):
+    """``nn.Linear`` (the same parameters and state-dict keys) computed by :func:`linear`."""
+
+    def forward(self, x: Tensor) -> Tensor:
+        return linear(x, self.weight, self.bias)
+
+
 class ConvEncoder(nn.Module):
     """Image encoder: ``(..., C, 64, 64)`` float in ``[-0.5, 0.5]`` to ``(..., embed_size)``."""
 
@@ -560,7 +657,7 @@ class ConvDecoder(nn.Module):
     def __init__(self, *, feat_size: int, channels: int, depth: int) -> None:
         super().__init__()
         self.depth = depth
-        self.linear = nn.Linear(feat_size, 32 * depth)
+        self.linear = Linear(feat_size, 32 * depth)
         kernels = (5, 5, 6, 6)
         layers: list[nn.Module] = []
         in_channels = 32 * depth
@@ -610,7 +707,7 @@ class ConvDecoder(nn.Module):
             return conv_transpose_stride2(hidden.reshape(*hidden.shape, 1, 1), first.weight, first.bias)
         taps = _taps_1x1(first.weight)
         bias = torch.addmm(first.bias.repeat(first.kernel_size[0] * first.kernel_size[1]), self.linear.bias[None], taps)
-        return _pixels_1x1(torch.addmm(bias[0], feat, self.linear.weight.t() @ taps), first.weight)
+        return _pixels_1x1(linear(feat, (self.linear.weight.t() @ taps).t(), bias[0]), first.weight)
 
     def phases(self, feat: Tensor, offset: float = 0.0) -> Tensor:
         """The mean image's phases, :func:`space_to_depth` applied :attr:`phase_levels` times (channels first):
@@ -660,12 +757,12 @@ class MLP(nn.Module):
         modules: list[nn.Module] = []
         size = in_size
         for _ in range(layers):
-            modules.append(nn.Linear(size, units))
+            modules.append(Linear(size, units))
             if norm:
                 modules.append(nn.LayerNorm(units, eps=1e-3))
             modules.append(MLP_ACTS[act]())
             size = units
-        modules.append(nn.Linear(size, out_size))
+        modules.append(Linear(size, out_size))
         self.net = nn.Sequential(*modules)
         glorot_init(self)
 
@@ -694,7 +791,7 @@ class LayerNormGRUCell(nn.Module):
         super().__init__()
         self.size = size
         self.update_bias = update_bias
-        self.linear = nn.Linear(in_size + size, 3 * size, bias=False)
+        self.linear = Linear(in_size + size, 3 * size, bias=False)
         self.norm = nn.LayerNorm(3 * size)
         glorot_init(self)
 

@@ -17,11 +17,10 @@ Features fed to every head are ``[deter, stoch flattened]``: ``(..., D + S * K)`
 from __future__ import annotations
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor, nn
 
 from coworld.models.distributions import OneHotCategorical, exponential_noise, log_softmax, softmax
-from coworld.models.networks import ELU, LayerNormGRUCell, glorot_init
+from coworld.models.networks import ELU, LayerNormGRUCell, Linear, glorot_init, linear
 
 __all__ = ["RSSM", "State", "stack_states"]
 
@@ -50,10 +49,10 @@ class RSSM(nn.Module):
         self.unimix = unimix
         self.feat_size = deter + stoch * classes
         """Length of :meth:`features`: ``D + S * K``."""
-        self.img_in = nn.Sequential(nn.Linear(stoch * classes + action_size, hidden), ELU())
+        self.img_in = nn.Sequential(Linear(stoch * classes + action_size, hidden), ELU())
         self.cell = LayerNormGRUCell(in_size=hidden, size=deter)
-        self.img_out = nn.Sequential(nn.Linear(deter, hidden), ELU(), nn.Linear(hidden, stoch * classes))
-        self.obs_out = nn.Sequential(nn.Linear(deter + embed_size, hidden), ELU(), nn.Linear(hidden, stoch * classes))
+        self.img_out = nn.Sequential(Linear(deter, hidden), ELU(), Linear(hidden, stoch * classes))
+        self.obs_out = nn.Sequential(Linear(deter + embed_size, hidden), ELU(), Linear(hidden, stoch * classes))
         glorot_init(self.img_in)
         glorot_init(self.img_out)
         glorot_init(self.obs_out)
@@ -131,7 +130,7 @@ class RSSM(nn.Module):
         img_in, act = self.img_in
         stoch_size = self.stoch * self.classes
         # W [z, a] + b = W_z z + (W_a a + b); a zeroed where the episode starts, as obs_step zeroes it.
-        action_share = F.linear(action.transpose(0, 1) * keep, img_in.weight[:, stoch_size:], img_in.bias)
+        action_share = linear(action.transpose(0, 1) * keep, img_in.weight[:, stoch_size:], img_in.bias)
         stoch_weight = img_in.weight[:, :stoch_size].t()
         noise = exponential_noise((length, 2, batch, self.stoch, self.classes), action.device)
         # Which steps reset a sequence (on a CPU, where reading them costs no synchronisation): elsewhere the
@@ -162,7 +161,7 @@ class RSSM(nn.Module):
         """The embedding's part ``W_e e + b`` of the posterior's first layer ``W [h, e] + b``:
         ``(..., E) -> (..., H)``."""
         first, *_ = self.obs_out
-        return F.linear(embed, first.weight[:, self.deter_size :], first.bias)
+        return linear(embed, first.weight[:, self.deter_size :], first.bias)
 
     def _prior(self, deter: Tensor, sample: bool, noise: Tensor | None = None) -> State:
         """The prior state of the recurrent state ``deter (N, D)``: its head's logits and their draw."""

@@ -7,19 +7,21 @@ import torch
 
 from coworld.config import Config
 from coworld.errors import CoworldError
-from coworld.models import autotune
+from coworld.models import autotune, networks
 from coworld.models.networks import (
     ELU,
     MLP,
     ConvDecoder,
     ConvEncoder,
     LayerNormGRUCell,
+    Linear,
     check_image_shape,
     conv2d,
     conv2d_stride2,
     conv_transpose_stride2,
     depth_to_space,
     frozen_parameters,
+    linear,
     space_to_depth,
     stride2_phases4,
 )
@@ -56,7 +58,7 @@ def test_mlp_shape_and_depth() -> None:
 def test_mlp_norm_centres_and_scales_each_hidden_layer() -> None:
     mlp = MLP(in_size=7, out_size=2, units=16, layers=2, norm=True, act="silu")
     hidden = mlp.net[:-1]
-    assert [type(m) for m in hidden] == [torch.nn.Linear, torch.nn.LayerNorm, torch.nn.SiLU] * 2
+    assert [type(m) for m in hidden] == [Linear, torch.nn.LayerNorm, torch.nn.SiLU] * 2
     # Inputs that share a large common part: after the first Linear + LayerNorm, each row has mean 0, std 1.
     x = torch.randn(32, 7) * 0.01 + 5.0
     normed = hidden[1](hidden[0](x))
@@ -241,6 +243,46 @@ def test_conv2d_is_the_convolution_with_its_gradients(
         got_grads = torch.autograd.grad(got, inputs, grad)
         for a, c in zip(got_grads, torch.autograd.grad(want, inputs, grad), strict=True):
             torch.testing.assert_close(a, c, **tolerance)
+
+
+@pytest.mark.parametrize("form", ["matmul", "onednn"])
+@pytest.mark.parametrize(("shape", "chooses"), [((6, 16, 7), True), ((96, 7), True), ((67, 7), False)])
+def test_linear_is_f_linear_with_its_gradients(
+    form: str, shape: tuple[int, ...], chooses: bool, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """:func:`linear` in either form (the matrix product, or oneDNN's 1 x 1 convolution of the rows as pixels) is
+    ``F.linear``, gradients included, with a bias and without; rows that no 16 to 64 divide (67) take ``F.linear``
+    and time no form."""
+    keys: list[object] = []
+
+    def fastest(key: object, forms: object, default: str) -> str:
+        keys.append(key)
+        return form
+
+    monkeypatch.setattr(autotune, "fastest", fastest)
+    monkeypatch.setattr(networks, "_LINEAR_MIN_ROWS", 32)
+    x = torch.randn(*shape, requires_grad=True)
+    weight = torch.randn(5, 7, requires_grad=True)
+    b = torch.randn(5, requires_grad=True)
+    for bias in (b, None):
+        inputs = [x, weight] + ([b] if bias is not None else [])
+        got, want = linear(x, weight, bias), torch.nn.functional.linear(x, weight, bias)
+        torch.testing.assert_close(got, want)
+        grad = torch.randn_like(want)
+        for a, c in zip(torch.autograd.grad(got, inputs, grad), torch.autograd.grad(want, inputs, grad), strict=True):
+            torch.testing.assert_close(a, c)
+    rows = x.numel() // 7
+    assert keys == ([("linear", (rows, 7), 5), ("linear input grad", (rows, 5), 7)] * 2 if chooses else [])
+
+
+def test_linear_module_is_nn_linear() -> None:
+    """:class:`Linear` keeps ``nn.Linear``'s parameters and state-dict keys, so checkpoints load either way."""
+    plain = torch.nn.Linear(7, 5)
+    ours = Linear(7, 5)
+    ours.load_state_dict(plain.state_dict())
+    x = torch.randn(3, 7)
+    torch.testing.assert_close(ours(x), plain(x))
+    assert isinstance(ours, torch.nn.Linear)
 
 
 @pytest.mark.parametrize(("c_out", "size"), [(16, 5), (12, 3)])
