@@ -41,8 +41,10 @@ batch; ``--r2dreamer PATH`` NM512/r2dreamer's (its ``Dreamer.update``, twice: it
 and decoder-free R2-Dreamer) at the tiny preset's widths (:func:`r2dreamer_settings`), eager and in float32 (its
 update autocasts to float16 on any device, which on a CPU is ten times slower). Their code is run from their
 checkouts, not copied; ``--peer-python`` names an interpreter with torch and ruamel.yaml (and, for r2dreamer,
-hydra-core and tensordict). ``--flops`` has every side count the floating-point operations of one more update, before
-the warm-up and untimed (PyTorch's ``FlopCounterMode``: matrix products and convolutions, forward and backward).
+hydra-core and tensordict). ``--flops`` has every side count the floating-point operations of one more update, untimed
+(PyTorch's ``FlopCounterMode``: matrix products and convolutions, forward and backward): on our sides after the
+warm-up, so that the forms :mod:`coworld.models.autotune` times on a first call are neither timed under the counter
+nor counted (with ``--warmup 0`` the counted update is the first); on the peers' before it.
 """
 
 from __future__ import annotations
@@ -203,14 +205,14 @@ def worker(args: argparse.Namespace) -> None:
     out: dict[str, object] = {"coworld": str(Path(coworld.__file__).parent.parent)}
     warmup_s, flops = {}, {}
     for name, update in updates.items():
-        if args.flops:  # one more update before the warm-up, counted, not timed
-            with FlopCounterMode(display=False) as counter:
-                update()
-            flops[name] = counter.get_total_flops()
         start = time.perf_counter()
         for _ in range(args.warmup):
             update()
         warmup_s[name] = time.perf_counter() - start  # with compile=true, compilation happens here
+        if args.flops:  # one more update after the warm-up, counted, not timed (see the module's docstring)
+            with FlopCounterMode(display=False) as counter:
+                update()
+            flops[name] = counter.get_total_flops()
         times = []
         for _ in range(args.updates):
             start = time.perf_counter()

@@ -24,6 +24,9 @@ Rows:
 - ``decoder linear + layer 1 folded``: :meth:`coworld.models.networks.ConvDecoder._first_layer` with the linear
   layer's weights multiplied into the first transposed convolution's, against the two matrix products, forward and
   backward, at the tiny preset's sizes on 512 rows and the authors' (depth 32, 250 features) on 800;
+- ``linear``: :func:`coworld.models.networks.linear`'s two forms, each forced, oneDNN's 1 x 1 convolution of the rows
+  against the matrix product, forward alone and forward and backward, at the tiny preset's imagined heads and at the
+  authors' sizes (the function takes the faster per shape);
 - ``decoder layer 4``: :func:`coworld.models.networks.stride2_phases4` (2 x 2 phases in, 4 x 4 phases out) against
   :func:`~coworld.models.networks.stride2_phases` of the interleaved input, forward and backward, at batch 512, from
   8, 16 and 32 input channels (the decoder takes the faster: ``_PHASES4_BELOW_DEPTH``);
@@ -49,6 +52,7 @@ from collections.abc import Callable
 import torch
 
 from coworld.config import make_config
+from coworld.models import autotune
 from coworld.models.distributions import exponential_noise, log_softmax
 from coworld.models.networks import (
     ELU,
@@ -59,6 +63,7 @@ from coworld.models.networks import (
     _transposed_input_grad,
     conv_transpose_stride2,
     depth_to_space,
+    linear,
     stride2_phases,
     stride2_phases4,
 )
@@ -222,6 +227,36 @@ def main() -> None:
             median_us(lambda d=folded: first_layer(d), args.repeats),
             median_us(lambda d=two: first_layer(d), args.repeats),
         )
+
+    # linear's two forms, each forced: oneDNN's 1 x 1 convolution of the rows as pixels against the matrix product,
+    # forward alone and forward + backward (the weight gradient a matrix product in both), at an imagined
+    # trajectory's heads at the tiny preset (5,632 rows) and at the authors' sizes on batch 16 (12,800) and on batch
+    # 150 (7,500 rows per step of the RSSM's loops; their imagined trajectories have 120,000).
+    shapes = ((5632, 128, 64), (12800, 250, 400), (12800, 400, 400), (7500, 250, 400), (7500, 1030, 200))
+    for rows, n_in, n_out in shapes:
+        x = torch.randn(rows, n_in, requires_grad=True)
+        weight = torch.randn(n_out, n_in, requires_grad=True)
+        bias = torch.randn(n_out, requires_grad=True)
+        grad = torch.randn(rows, n_out)
+
+        def forced(form: str, backward: bool, x=x, w=weight, b=bias, g=grad) -> Callable[[], object]:  # noqa: ANN001
+            def run() -> None:
+                autotune._choices[("linear", tuple(x.shape), w.shape[0])] = form
+                autotune._choices[("linear input grad", tuple(g.shape), x.shape[1])] = form
+                if backward:
+                    torch.autograd.grad(linear(x, w, b), [x, w, b], g)
+                else:
+                    with torch.no_grad():
+                        linear(x, w, b)
+
+            return run
+
+        for backward in (False, True):
+            row(
+                f"linear {rows} x {n_in} -> {n_out}, {'fwd + bwd' if backward else 'forward'}",
+                median_us(forced("onednn", backward), args.repeats),
+                median_us(forced("matmul", backward), args.repeats),
+            )
 
     # The decoder's last layer (d -> 3 channels, 30 x 30 -> 64 x 64; d = 8 at the tiny preset): from the layer
     # before's 2 x 2 phases to the image's 4 x 4 phases, against the 2 x 2 output phases of the interleaved input.
