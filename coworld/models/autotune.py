@@ -3,7 +3,9 @@
 Some operations of the update have forms that compute the same numbers (to float rounding) at speeds that depend on
 the CPU: summing a convolution's output gradient for its bias ran 1.6-4.8x faster as a matrix-vector product than
 as PyTorch's reduction at some of the tiny preset's widths on one Intel Xeon, and 1.3-10x slower on one AMD EPYC
-(benchmarks/RESULTS.md, "Eighth pass" and "Eleventh pass").
+(benchmarks/RESULTS.md, "Eighth pass" and "Eleventh pass"); on that AMD EPYC a linear layer's forward and input
+gradient at the authors' sizes ran faster as oneDNN's 1 x 1 convolutions than as the BLAS matrix product, and at the
+tiny preset's widths mostly not (:func:`coworld.models.networks.linear`; "Thirteenth pass").
 As cuDNN's benchmark mode does for convolutions, :func:`fastest` times each form on the first call with a new key
 (the operation and its input's shape) and returns the same choice for that key for the rest of the process.
 
