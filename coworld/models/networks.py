@@ -505,11 +505,12 @@ def linear(x: Tensor, weight: Tensor, bias: Tensor | None = None) -> Tensor:
 
     The rows ``(N, in)`` are already a channels-last image of ``N`` pixels: viewed as ``B`` images of ``N / B``
     pixels (``B`` at least 16, so that PyTorch hands the convolution to oneDNN), the product is a 1 x 1 convolution
-    and its output, channels last, is the ``(N, out)`` result, with no copy either way. On one AMD EPYC, whose
-    BLAS (MKL) runs its generic kernels there, oneDNN's took 1.1-1.35x less time forward and 1.1-2.0x less for
-    the input gradient at 7,500 to 120,000 rows of 250-1,224 numbers (the authors' sizes), and was slower at the
-    tiny preset's 512 rows (benchmarks/update_ops.py, "linear"). The weight gradient, about as fast either way,
-    stays a matrix product. The forms differ in summation order only.
+    and its output, channels last, is the ``(N, out)`` result, with no copy either way. On one AMD EPYC, where
+    PyTorch's BLAS (MKL) runs generic kernels, oneDNN's form was 1.11-1.28x faster forward and 1.13-1.43x forward
+    and backward at 7,500 and 12,800 rows of 250 to 1,030 numbers (the authors' sizes; benchmarks/update_ops.py,
+    "linear"), 7.7% of a whole update on batch 150 x 50 (benchmarks/linear_ab.py), and slower at the tiny preset's
+    512-row layers. The weight gradient, about as fast either way, stays a matrix product. The forms differ in
+    summation order only.
 
     Falls back to ``F.linear`` off the CPU, for other dtypes, under autocast or ``torch.compile``, below
     :data:`_LINEAR_MIN_ROWS` rows and where no ``B`` from 16 to 64 divides the rows."""
