@@ -199,7 +199,7 @@ class OneHotCategorical:
 
     ``logits`` has shape ``(..., S, K)``: ``S`` latent variables with ``K`` classes each. ``rsample`` returns a
     one-hot sample whose gradient flows to the logits as if through the probabilities
-    (``sample + probs - probs.detach()``), as in DreamerV2.
+    (``sample + (probs - probs.detach())``: exactly one-hot forward), as in DreamerV2.
 
     ``normalised``: the logits are already log-probabilities (each row's exponentials sum to 1, as the RSSM's
     are), so the probabilities are their exponentials: the same values as the softmax, and the same gradient to
@@ -237,7 +237,7 @@ class OneHotCategorical:
         index = torch.div(probs.detach().float(), noise, out=race).max(dim=-1, keepdim=True).indices
         # F.one_hot's values, without its checks of the indices' range (two more reductions)
         sample = torch.zeros(probs.shape, dtype=probs.dtype, device=probs.device).scatter_(-1, index, 1.0)
-        return sample + probs - probs.detach()
+        return sample + (probs - probs.detach())  # exactly one-hot forward, as DreamerV2's; the gradient of probs
 
     def entropy(self) -> Tensor:
         """Entropy summed over the ``S`` variables, shape ``(...)``."""

@@ -25,9 +25,9 @@ def test_straight_through_sample_is_one_hot_with_probability_gradient() -> None:
     logits = torch.randn(4, 3, 5, requires_grad=True)
     weights = torch.randn(4, 3, 5)
     sample = OneHotCategorical(logits).rsample()
-    # Forward value is one-hot (up to the rounding of ``sample + probs - probs``).
+    # Forward value is exactly one-hot (``sample + (probs - probs)``, with no rounding of ``(sample + probs) - probs``).
     hard = sample.detach().round()
-    torch.testing.assert_close(sample.detach(), hard)
+    assert torch.equal(sample.detach(), hard)
     assert torch.equal(hard.sum(-1), torch.ones(4, 3))
     (grad_sample,) = torch.autograd.grad((weights * sample).sum(), logits)
     (grad_probs,) = torch.autograd.grad((weights * torch.softmax(logits, -1)).sum(), logits)
