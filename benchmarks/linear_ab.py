@@ -35,10 +35,10 @@ def main() -> None:
     config = make_config(args.preset, dict(item.split("=", 1) for item in overrides))
     agent = DreamerV2(config=config, action_size=6)
     batch = agent.prepare(random_batch(config.train.batch_size, config.train.seq_len, 6))
-    sides = {"chosen": networks._LINEAR_MIN_ROWS, "F.linear": None}
+    sides = {"chosen": networks._LINEAR_MIN_ROWS, "F.linear": 2**62}  # side -> linear's threshold of rows
 
     def update(side: str) -> float:
-        networks._LINEAR_MIN_ROWS = sides[side] if sides[side] is not None else 2**62
+        networks._LINEAR_MIN_ROWS = sides[side]
         start = time.perf_counter()
         agent.train(batch)
         return time.perf_counter() - start
