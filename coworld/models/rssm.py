@@ -16,16 +16,22 @@ Features fed to every head are ``[deter, stoch flattened]``: ``(..., D + S * K)`
 
 from __future__ import annotations
 
+from typing import Any, NamedTuple
+
 import torch
 from torch import Tensor, nn
 
 from coworld.models.distributions import OneHotCategorical, exponential_noise, log_softmax, softmax
 from coworld.models.networks import ELU, LayerNormGRUCell, Linear, glorot_init, linear
 
-__all__ = ["RSSM", "State", "stack_states"]
+__all__ = ["FUSED_OBSERVE", "RSSM", "State", "stack_states"]
 
 State = dict[str, Tensor]
 """An RSSM state: ``deter (..., D)``, ``logits (..., S, K)``, ``stoch (..., S, K)``."""
+
+FUSED_OBSERVE = True
+"""Whether :meth:`RSSM.observe` may run its posterior loop as one autograd function (:class:`_Observe`) where it
+applies; False runs every step through autograd (the tests compare the two)."""
 
 
 class RSSM(nn.Module):
@@ -119,7 +125,8 @@ class RSSM(nn.Module):
         embeddings' share of the posterior's first layer; the prior's head and draw, which the next step does not
         read (it continues from the posterior), on every step's ``h`` at once after the loop; and the exponential
         noise of every categorical draw (one :func:`exponential_noise` call that fills the numbers the ``T`` prior
-        and ``T`` posterior draws would take one by one, in the same order).
+        and ``T`` posterior draws would take one by one, in the same order). On a CPU in float32 the loop itself is
+        one autograd function (:class:`_Observe`, :data:`FUSED_OBSERVE`): the same values, its gradients by hand.
         """
         batch, length = action.shape[:2]
         given = state is not None
@@ -141,6 +148,19 @@ class RSSM(nn.Module):
         else:
             resets = [True] * length
         deter, stoch = state["deter"], state["stoch"].reshape(batch, stoch_size)
+        if self._fuses(action_share):
+            first, _, out = self.obs_out
+            cell = self.cell
+            deters, logits, stochs = _Observe.apply(
+                _ObserveSpec(resets, self.stoch, self.classes, cell.norm.eps, cell.update_bias),
+                action_share, embed_share, noise[:, 1], keep, deter, stoch, stoch_weight.t(), cell.linear.weight,
+                cell.norm.weight, cell.norm.bias, first.weight[:, : self.deter_size], out.weight, out.bias,
+            )  # fmt: skip
+            post = {"deter": deters, "logits": logits, "stoch": stochs}  # batch (B, T)
+            prior_noise = noise[:, 0].reshape(length * batch, self.stoch, self.classes)
+            prior = self._prior(deters.transpose(0, 1).reshape(length * batch, -1), True, prior_noise)
+            prior = {k: v.reshape(length, batch, *v.shape[1:]).transpose(0, 1) for k, v in prior.items()}
+            return post, prior
         deters: list[Tensor] = []
         posts: list[State] = []
         for t in range(length):
@@ -156,6 +176,18 @@ class RSSM(nn.Module):
         prior = self._prior(torch.stack(deters).reshape(length * batch, -1), True, prior_noise)  # batch (T B,)
         prior = {key: value.reshape(length, batch, *value.shape[1:]).transpose(0, 1) for key, value in prior.items()}
         return stack_states(posts), prior
+
+    def _fuses(self, action_share: Tensor) -> bool:
+        """Whether :meth:`observe` runs its loop as one :class:`_Observe`: float32 on a CPU, outside autocast and
+        ``torch.compile``, without unimix (elsewhere, step by step through autograd)."""
+        return (
+            FUSED_OBSERVE
+            and action_share.device.type == "cpu"
+            and action_share.dtype == torch.float32
+            and self.unimix == 0.0
+            and not torch.is_autocast_enabled("cpu")
+            and not torch.compiler.is_compiling()
+        )
 
     def _embed_share(self, embed: Tensor) -> Tensor:
         """The embedding's part ``W_e e + b`` of the posterior's first layer ``W [h, e] + b``:
@@ -195,3 +227,189 @@ class RSSM(nn.Module):
 def stack_states(states: list[State], dim: int = 1) -> State:
     """Stack a list of states with batch ``(N,)`` into one with batch ``(N, T)`` (``dim=1``) or ``(T, N)``."""
     return {key: torch.stack([s[key] for s in states], dim=dim) for key in states[0]}
+
+
+class _ObserveSpec(NamedTuple):
+    """What :class:`_Observe` needs besides tensors."""
+
+    resets: list[bool]
+    """Per step, whether some sequence starts there (its state and action are zeroed by ``keep``)."""
+    stoch: int
+    classes: int
+    eps: float
+    """The GRU's layer norm's epsilon."""
+    update_bias: float
+
+
+class _Observe(torch.autograd.Function):
+    """:meth:`RSSM.observe`'s loop over ``T`` steps as one autograd function: the posterior's deterministic states,
+    logits and straight-through one-hot samples ``(T, B, ...)``, the same values as the step-by-step loop.
+
+    The forward runs without recording a graph and keeps each step's intermediate values; the backward runs back
+    through time by hand, each step's gradient with respect to the state in a few operations on ``(B, ...)``
+    tensors, and every weight's gradient at the end as one matrix product over all ``T B`` rows. At the tiny preset's
+    batch of 16 the loop is per-operation overhead rather than arithmetic (16 rows a product), and autograd's graph
+    of some 40 operations a step is most of it.
+
+    Inputs: ``action_share (T, B, H)`` (the recurrent input layer's action part and bias), ``embed_share (T, B,
+    H)`` (the posterior's first layer's embedding part and bias), ``noise (T, B, S, K)`` (the posterior draws'
+    exponential noise), ``keep (T, B, 1)`` (0 where a sequence starts), the state before step 0 ``deter0 (B, D)``,
+    ``stoch0 (B, S K)``, and the weights: ``w_stoch (H, S K)`` (the recurrent input layer's stochastic part),
+    ``w_cell (3 D, H + D)``, ``ln_w``, ``ln_b (3 D)`` (the GRU's product and layer norm), ``w_deter (H, D)`` (the
+    posterior's first layer's deterministic part), ``w_out (S K, H)``, ``b_out (S K)``.
+    """
+
+    @staticmethod
+    def forward(  # type: ignore[override]
+        ctx: Any,
+        spec: _ObserveSpec,
+        action_share: Tensor,
+        embed_share: Tensor,
+        noise: Tensor,
+        keep: Tensor,
+        deter0: Tensor,
+        stoch0: Tensor,
+        w_stoch: Tensor,
+        w_cell: Tensor,
+        ln_w: Tensor,
+        ln_b: Tensor,
+        w_deter: Tensor,
+        w_out: Tensor,
+        b_out: Tensor,
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        length, batch, hidden = action_share.shape
+        size = deter0.shape[-1]
+        shape = (batch, spec.stoch, spec.classes)
+        ln_bias = ln_b.clone()
+        ln_bias[2 * size :] += spec.update_bias  # u = sigmoid(norm(z)_u + update_bias): the bias folded in
+        w_stoch_t, w_cell_t, w_deter_t, w_out_t = w_stoch.t(), w_cell.t(), w_deter.t(), w_out.t()
+        xh = action_share.new_empty(length, batch, hidden + size)  # each step's GRU input [x, h]
+        hids = action_share.new_empty(length, batch, hidden)
+        deters, logits, stochs, z_rows, stats, gates, cands = [], [], [], [], [], [], []
+        deter, stoch = deter0, stoch0
+        for t, (step, hid) in enumerate(zip(xh.unbind(0), hids.unbind(0), strict=True)):
+            if spec.resets[t]:
+                stoch, deter = stoch * keep[t], deter * keep[t]
+            torch._C._nn.elu(torch.addmm(action_share[t], stoch, w_stoch_t), out=step[:, :hidden])
+            step[:, hidden:] = deter
+            z = torch.mm(step, w_cell_t)
+            parts, mean, rstd = torch.native_layer_norm(z, [3 * size], ln_w, ln_bias, spec.eps)
+            parts = parts.view(batch, 3, size)
+            gate = torch.sigmoid(parts[:, 0::2])  # reset r and update u, (B, 2, D)
+            cand = torch.tanh(gate[:, 0] * parts[:, 1])
+            deter = torch.lerp(step[:, hidden:], cand, gate[:, 1])  # u c + (1 - u) h
+            torch._C._nn.elu(torch.addmm(embed_share[t], deter, w_deter_t), out=hid)
+            logit = log_softmax(torch.addmm(b_out, hid, w_out_t).view(shape))
+            race = torch.div(logit.exp(), noise[t])
+            sample = torch.zeros(shape, dtype=logit.dtype).scatter_(-1, race.max(dim=-1, keepdim=True).indices, 1.0)
+            stoch = sample.view(batch, -1)
+            deters.append(deter)
+            logits.append(logit)
+            stochs.append(sample)
+            z_rows.append(z)
+            stats.append((mean, rstd))
+            gates.append(gate)
+            cands.append(cand)
+        ctx.spec = spec
+        ctx.save_for_backward(keep, stoch0, w_stoch, w_cell, ln_w, ln_b, w_deter, w_out)
+        ctx.saved = (xh, hids, deters, logits, stochs, z_rows, stats, gates, cands)
+        # batch (B, T), contiguous as the step-by-step loop stacks its states
+        return torch.stack(deters, 1), torch.stack(logits, 1), torch.stack(stochs, 1)
+
+    @staticmethod
+    def backward(ctx: Any, g_deters: Tensor | None, g_logits: Tensor | None, g_stochs: Tensor | None) -> tuple:
+        spec = ctx.spec
+        keep, stoch0, w_stoch, w_cell, ln_w, ln_b, w_deter, w_out = ctx.saved_tensors
+        xh, hids, deters, logits, stochs, z_rows, stats, gates, cands = ctx.saved
+        length, batch, _ = xh.shape
+        size, hidden = deters[0].shape[-1], hids.shape[-1]
+        stoch_size = spec.stoch * spec.classes
+        shape = (batch, spec.stoch, spec.classes)
+        # What each step's backward multiplies by, for all steps at once, (T, B, ...).
+        gate = torch.stack(gates)
+        r, u, c = gate[:, :, 0], gate[:, :, 1], torch.stack(cands)
+        mean, rstd = torch.stack([m for m, _ in stats]), torch.stack([v for _, v in stats])
+        zhat = (torch.stack(z_rows) - mean) * rstd
+        cand_in = zhat[..., size : 2 * size] * ln_w[size : 2 * size] + ln_b[size : 2 * size]  # norm(z)'s candidate part
+        uc = u * (1.0 - c * c)
+        # d parts / d deter' of reset r, candidate c and update u: deter' = u c' + (1 - u) h, c' = tanh(r c)
+        factors = torch.stack([uc * cand_in * r * (1.0 - r), uc * r, (c - xh[..., hidden:]) * u * (1.0 - u)], dim=2)
+        one_minus_u = 1.0 - u
+        d_x = xh[..., :hidden].clamp_max(0.0).add_(1.0)  # ELU's derivative from its output
+        d_hid = hids.clamp_max(0.0).add_(1.0)
+        log_probs = torch.stack(logits)
+        probs = log_probs.exp()
+        # the logits' gradient from outside, and the samples' (straight-through: their probabilities', exp(logits))
+        outer = torch.zeros_like(probs)
+        if g_logits is not None:
+            outer += g_logits.transpose(0, 1)
+        if g_stochs is not None:
+            outer.addcmul_(probs, g_stochs.transpose(0, 1))
+        # each step's state gradient from outside, added where the next step's backward gives it (below)
+        g_deters = None if g_deters is None else g_deters.transpose(0, 1)
+        g_raw = xh.new_empty(length, batch, stoch_size)
+        g_preh = xh.new_empty(length, batch, hidden)
+        g_parts = xh.new_empty(length, batch, 3 * size)
+        g_prex = xh.new_empty(length, batch, hidden)
+        g_z: list[Tensor] = []
+        gd = xh.new_zeros(batch, size) if g_deters is None else g_deters[-1]
+        gs = xh.new_zeros(batch, stoch_size)
+        steps = zip(
+            *(x.unbind(0) for x in (outer, probs, log_probs, g_raw, g_preh, g_parts, g_prex, d_hid, d_x)),
+            factors.unbind(0), one_minus_u.unbind(0), strict=True,
+        )  # fmt: skip
+        for t, (outer_t, probs_t, log_t, raw_t, preh_t, parts_t, prex_t, d_hid_t, d_x_t, factors_t, omu_t) in reversed(
+            list(enumerate(steps))
+        ):
+            gl = torch.addcmul(outer_t, probs_t, gs.view(shape))
+            torch.ops.aten._log_softmax_backward_data.out(gl, log_t, -1, gl.dtype, out=raw_t.view(shape))
+            torch.mul(torch.mm(raw_t, w_out), d_hid_t, out=preh_t)
+            gd = torch.addmm(gd, preh_t, w_deter)
+            torch.mul(gd.unsqueeze(1), factors_t, out=parts_t.view(batch, 3, size))
+            mean_t, rstd_t = stats[t]
+            g_z.append(
+                torch.ops.aten.native_layer_norm_backward(
+                    parts_t, z_rows[t], [3 * size], mean_t, rstd_t, ln_w, ln_b, [True, False, False]
+                )[0]
+            )
+            g_xh = torch.mm(g_z[-1], w_cell)
+            gd = torch.addcmul(g_xh[:, hidden:], gd, omu_t)
+            torch.mul(g_xh[:, :hidden], d_x_t, out=prex_t)
+            gs = torch.mm(prex_t, w_stoch)
+            if spec.resets[t]:
+                gd, gs = gd * keep[t], gs * keep[t]
+            if g_deters is not None and t > 0:
+                gd = gd + g_deters[t - 1]
+        g_z.reverse()
+        needs = ctx.needs_input_grad
+        rows = length * batch
+
+        def flat(x: Tensor) -> Tensor:
+            return x.reshape(rows, -1)
+
+        grads: dict[str, Tensor | None] = {}
+        if needs[7]:  # w_stoch: each step's input sample, zeroed where its sequence starts
+            stoch_in = torch.stack([stoch0.view(shape), *stochs[:-1]]).view(length, batch, stoch_size) * keep
+            grads["w_stoch"] = flat(g_prex).t() @ flat(stoch_in)
+        grads["w_cell"] = flat(torch.stack(g_z)).t() @ flat(xh) if needs[8] else None
+        grads["ln_w"] = (g_parts * zhat).sum((0, 1)) if needs[9] else None
+        grads["ln_b"] = g_parts.sum((0, 1)) if needs[10] else None
+        grads["w_deter"] = flat(g_preh).t() @ flat(torch.stack(deters)) if needs[11] else None
+        grads["w_out"] = flat(g_raw).t() @ flat(hids) if needs[12] else None
+        grads["b_out"] = g_raw.sum((0, 1)) if needs[13] else None
+        return (
+            None,
+            g_prex if needs[1] else None,
+            g_preh if needs[2] else None,
+            None,
+            None,
+            gd if needs[5] else None,
+            gs if needs[6] else None,
+            grads.get("w_stoch"),
+            grads["w_cell"],
+            grads["ln_w"],
+            grads["ln_b"],
+            grads["w_deter"],
+            grads["w_out"],
+            grads["b_out"],
+        )

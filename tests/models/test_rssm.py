@@ -5,6 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
+import coworld.models.rssm as rssm_module
 from coworld.config import Config
 from coworld.models.rssm import RSSM, stack_states
 
@@ -92,3 +93,74 @@ def test_observe_is_obs_step_at_every_step_through_resets(tiny: Config, given: b
     for got, want in ((post, stack_states(posts)), (prior, stack_states(priors))):
         for key in want:
             torch.testing.assert_close(got[key], want[key])
+
+
+def _observe_with_gradients(
+    rssm: RSSM, inputs: dict[str, torch.Tensor], is_first: torch.Tensor, used: tuple[str, ...], fused: bool
+) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor | None]]:
+    """``observe``'s states and the gradients of a random weighting of the outputs in ``used`` with respect to
+    every input and weight, through the fused loop or step by step."""
+    leaves = {name: value.detach().clone().requires_grad_() for name, value in inputs.items()}
+    start = {"deter": leaves["deter0"], "stoch": leaves["stoch0"], "logits": torch.zeros_like(leaves["stoch0"])}
+    rssm.zero_grad(set_to_none=True)
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(rssm_module, "FUSED_OBSERVE", fused)
+        torch.manual_seed(1)
+        post, prior = rssm.observe(leaves["embed"], leaves["action"], is_first, start)
+    states = {f"post_{key}": value for key, value in post.items()} | {f"prior_{k}": v for k, v in prior.items()}
+    generator = torch.Generator().manual_seed(2)
+    loss = sum((torch.randn(states[n].shape, generator=generator) * states[n]).sum() for n in used)
+    loss.backward()
+    grads = {name: leaf.grad for name, leaf in leaves.items()}
+    grads.update({name: param.grad for name, param in rssm.named_parameters()})
+    return states, grads
+
+
+@pytest.mark.parametrize(
+    "used",
+    [
+        ("post_deter", "post_logits", "post_stoch", "prior_deter", "prior_logits", "prior_stoch"),
+        ("post_stoch",),
+        ("post_logits", "prior_logits"),
+        ("post_deter",),
+    ],
+)
+def test_fused_observe_matches_the_step_by_step_loop_with_every_gradient(tiny: Config, used: tuple[str, ...]) -> None:
+    """The fused loop (one autograd function, its backward through time by hand) computes what autograd through
+    every step computes: the states (their memory layout too) and the gradients of the inputs, the start state and
+    every weight, through episodes that start mid-window, whichever outputs the loss reads."""
+    rssm = _rssm(tiny)
+    with torch.no_grad():  # away from the initial weights' symmetric values, so every term counts
+        for param in rssm.parameters():
+            param.add_(0.3 * torch.randn_like(param))
+    batch, length = 4, 9
+    inputs = {
+        "embed": torch.randn(batch, length, 10),
+        "action": torch.randn(batch, length, 3),
+        "deter0": torch.randn(batch, tiny.world_model.deter),
+        "stoch0": torch.randn(batch, tiny.world_model.stoch, tiny.world_model.classes).softmax(-1),
+    }
+    is_first = torch.zeros(batch, length, dtype=torch.bool)
+    is_first[1, 0] = is_first[1, 4] = is_first[2, 6] = True
+    want_states, want_grads = _observe_with_gradients(rssm, inputs, is_first, used, fused=False)
+    got_states, got_grads = _observe_with_gradients(rssm, inputs, is_first, used, fused=True)
+    for name, want in want_states.items():
+        torch.testing.assert_close(got_states[name], want, msg=name)
+        assert got_states[name].stride() == want.stride(), name
+    for name, want in want_grads.items():
+        got = got_grads[name]
+        if want is None:  # not reached by this loss step by step: nothing, or zeros, from the fused loop
+            assert got is None or not got.any(), name
+            continue
+        assert got is not None, name
+        torch.testing.assert_close(got, want, rtol=1e-4, atol=1e-5, msg=name)
+
+
+def test_fused_observe_leaves_frozen_weights_without_gradient(tiny: Config) -> None:
+    rssm = _rssm(tiny)
+    embed = torch.randn(2, 5, 10, requires_grad=True)
+    rssm.requires_grad_(False)
+    post, _ = rssm.observe(embed, torch.randn(2, 5, 3), torch.zeros(2, 5, dtype=torch.bool))
+    (post["stoch"] * torch.randn_like(post["stoch"])).sum().backward()
+    assert all(param.grad is None for param in rssm.parameters())
+    assert embed.grad is not None and embed.grad.abs().sum() > 0
