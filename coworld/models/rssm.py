@@ -291,7 +291,8 @@ class _ObserveSpec(NamedTuple):
 
 class _Observe(torch.autograd.Function):
     """:meth:`RSSM.observe`'s loop over ``T`` steps as one autograd function: the posterior's deterministic states,
-    logits and straight-through one-hot samples ``(T, B, ...)``, the same values as the step-by-step loop.
+    logits and straight-through one-hot samples, batch ``(B, T)``, the same values (and memory layout) as the
+    step-by-step loop's.
 
     The forward runs without recording a graph and keeps each step's intermediate values; the backward runs back
     through time by hand, each step's gradient with respect to the state in a few operations on ``(B, ...)``
