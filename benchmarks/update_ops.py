@@ -27,6 +27,9 @@ Rows:
 - ``linear``: :func:`coworld.models.networks.linear`'s two forms, each forced, oneDNN's 1 x 1 convolution of the rows
   against the matrix product, forward alone and forward and backward, at the tiny preset's imagined heads and at the
   authors' sizes (the function takes the faster per shape);
+- ``observe``: :meth:`coworld.models.rssm.RSSM.observe`'s posterior loop as one autograd function (``_Observe``, its
+  backward through time by hand) against every step through autograd (``rssm.FUSED = False``), forward alone and
+  forward and backward, at the tiny preset's sizes on batch 16 x 32;
 - ``decoder layer 4``: :func:`coworld.models.networks.stride2_phases4` (2 x 2 phases in, 4 x 4 phases out) against
   :func:`~coworld.models.networks.stride2_phases` of the interleaved input, forward and backward, at batch 512, from
   8, 16 and 32 input channels (the decoder takes the faster: ``_PHASES4_BELOW_DEPTH``);
@@ -53,6 +56,7 @@ import torch
 
 from coworld.config import make_config
 from coworld.models import autotune
+from coworld.models import rssm as rssm_module
 from coworld.models.distributions import exponential_noise, log_softmax
 from coworld.models.networks import (
     ELU,
@@ -257,6 +261,32 @@ def main() -> None:
                 median_us(forced("onednn", backward), args.repeats),
                 median_us(forced("matmul", backward), args.repeats),
             )
+
+    # The RSSM's posterior loop at the tiny preset's sizes, batch 16 x 32: one autograd function (its backward
+    # through time by hand) against every step through autograd.
+    model = WorldModel(config=make_config("tiny").world_model, action_size=6)
+    rssm = model.rssm
+    embed = torch.randn(16, 32, model.encoder.embed_size, requires_grad=True)
+    action, is_first = torch.randn(16, 32, 6), torch.zeros(16, 32, dtype=torch.bool)
+    is_first[:, 0] = True
+
+    def observe(fused: bool, backward: bool) -> Callable[[], object]:
+        def run() -> None:
+            rssm_module.FUSED = fused
+            post, prior = rssm.observe(embed, action, is_first)
+            if backward:
+                loss = post["deter"].sum() + post["logits"].sum() + post["stoch"].sum() + prior["logits"].sum()
+                loss.backward()
+            rssm_module.FUSED = True
+
+        return run
+
+    for backward in (False, True):
+        row(
+            f"observe 16 x 32 fused, {'fwd + bwd' if backward else 'forward'}",
+            median_us(observe(True, backward), args.repeats),
+            median_us(observe(False, backward), args.repeats),
+        )
 
     # The decoder's last layer (d -> 3 channels, 30 x 30 -> 64 x 64; d = 8 at the tiny preset): from the layer
     # before's 2 x 2 phases to the image's 4 x 4 phases, against the 2 x 2 output phases of the interleaved input.
