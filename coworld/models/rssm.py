@@ -338,10 +338,10 @@ class _Observe(torch.autograd.Function):
         for t, (step, hid) in enumerate(zip(xh.unbind(0), hids.unbind(0), strict=True)):
             if spec.resets[t]:
                 stoch, deter = stoch * keep[t], deter * keep[t]
-            torch._C._nn.elu(torch.addmm(action_share[t], stoch, w_stoch_t), out=step[:, :hidden])
+            torch.ops.aten.elu.out(torch.addmm(action_share[t], stoch, w_stoch_t), out=step[:, :hidden])
             step[:, hidden:] = deter
             deter, z, mean, rstd, gate, cand = _gru(step, w_cell_t, ln_w, ln_bias, spec.eps)
-            torch._C._nn.elu(torch.addmm(embed_share[t], deter, w_deter_t), out=hid)
+            torch.ops.aten.elu.out(torch.addmm(embed_share[t], deter, w_deter_t), out=hid)
             logit = log_softmax(torch.addmm(b_out, hid, w_out_t).view(shape))
             sample = _one_hot_sample(logit, noise[t])
             stoch = sample.view(batch, -1)
