@@ -28,6 +28,7 @@ __all__ = [
     "exponential_noise",
     "head_distribution",
     "log_softmax",
+    "one_hot_race",
     "softmax",
 ]
 
@@ -194,6 +195,16 @@ class Bernoulli:
         return -F.binary_cross_entropy_with_logits(self.logits, value.to(self.logits.dtype), reduction="none")
 
 
+def one_hot_race(probs: Tensor, noise: Tensor) -> Tensor:
+    """The one-hot class ``argmax(probs / noise)`` over the last dimension, contiguous, in ``probs``' dtype (no
+    gradient): :meth:`OneHotCategorical.rsample`'s draw from exponential ``noise`` of the same shape."""
+    race = torch.empty(probs.shape, device=probs.device)  # contiguous: argmax along a strided dim is slow
+    # max's indices are argmax's (the first of equal values), and 1.4x faster at (512, 8, 8) (update_ops.py)
+    index = torch.div(probs.float(), noise, out=race).max(dim=-1, keepdim=True).indices
+    # F.one_hot's values, without its checks of the indices' range (two more reductions)
+    return torch.zeros(probs.shape, dtype=probs.dtype, device=probs.device).scatter_(-1, index, 1.0)
+
+
 class OneHotCategorical:
     """Independent categoricals over the last dimension with straight-through one-hot samples.
 
@@ -232,11 +243,7 @@ class OneHotCategorical:
         probs = self.probs
         if noise is None:
             noise = exponential_noise(probs.shape, probs.device)  # contiguous, as multinomial's
-        race = torch.empty(probs.shape, device=probs.device)  # contiguous: argmax along a strided dim is slow
-        # max's indices are argmax's (the first of equal values), and 1.4x faster at (512, 8, 8) (update_ops.py)
-        index = torch.div(probs.detach().float(), noise, out=race).max(dim=-1, keepdim=True).indices
-        # F.one_hot's values, without its checks of the indices' range (two more reductions)
-        sample = torch.zeros(probs.shape, dtype=probs.dtype, device=probs.device).scatter_(-1, index, 1.0)
+        sample = one_hot_race(probs.detach(), noise)
         return sample + (probs - probs.detach())  # exactly one-hot forward, as DreamerV2's; the gradient of probs
 
     def entropy(self) -> Tensor:

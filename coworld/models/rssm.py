@@ -21,7 +21,7 @@ from typing import Any, NamedTuple
 import torch
 from torch import Tensor, nn
 
-from coworld.models.distributions import OneHotCategorical, exponential_noise, log_softmax, softmax
+from coworld.models.distributions import OneHotCategorical, exponential_noise, log_softmax, one_hot_race, softmax
 from coworld.models.networks import ELU, LayerNormGRUCell, Linear, glorot_init, linear, tanh_
 
 __all__ = ["FUSED", "RSSM", "State", "stack_states"]
@@ -265,16 +265,10 @@ def _gru_factors(
     return torch.stack([uc * cand_in * r * (1.0 - r), uc * r, (cand - h) * u * (1.0 - u)], dim=-2), 1.0 - u
 
 
-def _one_hot_sample(logits: Tensor, noise: Tensor) -> Tensor:
-    """:meth:`OneHotCategorical.rsample`'s value (exactly one-hot) of normalised ``logits (N, S, K)``."""
-    race = torch.div(logits.exp(), noise)  # contiguous as the noise is: the maximum along a strided dim is slow
-    sample = torch.zeros(logits.shape, dtype=logits.dtype, device=logits.device)  # contiguous, not logits' layout
-    return sample.scatter_(-1, race.max(dim=-1, keepdim=True).indices, 1.0)
-
-
-def _elu_derivative(out: Tensor) -> Tensor:
-    """ELU's derivative from its output: 1 where it is positive, ``out + 1`` elsewhere."""
-    return out.clamp_max(0.0).add_(1.0)
+def _elu_backward(grad: Tensor, out: Tensor, *, into: Tensor) -> Tensor:
+    """ELU's input gradient from its output ``out``, the op :class:`~coworld.models.networks.ELU`'s backward runs,
+    written into ``into``."""
+    return torch.ops.aten.elu_backward.grad_input(grad, 1.0, 1, 1, True, out, grad_input=into)
 
 
 class _ObserveSpec(NamedTuple):
@@ -343,7 +337,7 @@ class _Observe(torch.autograd.Function):
             deter, z, mean, rstd, gate, cand = _gru(step, w_cell_t, ln_w, ln_bias, spec.eps)
             torch.ops.aten.elu.out(torch.addmm(embed_share[t], deter, w_deter_t), out=hid)
             logit = log_softmax(torch.addmm(b_out, hid, w_out_t).view(shape))
-            sample = _one_hot_sample(logit, noise[t])
+            sample = one_hot_race(logit.exp(), noise[t])
             stoch = sample.view(batch, -1)
             deters.append(deter)
             logits.append(logit)
@@ -371,7 +365,6 @@ class _Observe(torch.autograd.Function):
         mean, rstd = torch.stack([m for m, _ in stats]), torch.stack([v for _, v in stats])
         zhat = (torch.stack(z_rows) - mean) * rstd
         factors, one_minus_u = _gru_factors(torch.stack(gates), torch.stack(cands), zhat, xh[..., hidden:], ln_w, ln_b)
-        d_x, d_hid = _elu_derivative(xh[..., :hidden]), _elu_derivative(hids)
         log_probs = torch.stack(logits)
         probs = log_probs.exp()
         # the logits' gradient from outside, and the samples' (straight-through: their probabilities', exp(logits))
@@ -390,15 +383,15 @@ class _Observe(torch.autograd.Function):
         gd = xh.new_zeros(batch, size) if g_deters is None else g_deters[-1]
         gs = xh.new_zeros(batch, stoch_size)
         steps = zip(
-            *(x.unbind(0) for x in (outer, probs, log_probs, g_raw, g_preh, g_parts, g_prex, d_hid, d_x)),
+            *(x.unbind(0) for x in (outer, probs, log_probs, g_raw, g_preh, g_parts, g_prex, hids, xh)),
             factors.unbind(0), one_minus_u.unbind(0), strict=True,
         )  # fmt: skip
-        for t, (outer_t, probs_t, log_t, raw_t, preh_t, parts_t, prex_t, d_hid_t, d_x_t, factors_t, omu_t) in reversed(
+        for t, (outer_t, probs_t, log_t, raw_t, preh_t, parts_t, prex_t, hid_t, xh_t, factors_t, omu_t) in reversed(
             list(enumerate(steps))
         ):
             gl = torch.addcmul(outer_t, probs_t, gs.view(shape))
             torch.ops.aten._log_softmax_backward_data.out(gl, log_t, -1, gl.dtype, out=raw_t.view(shape))
-            torch.mul(torch.mm(raw_t, w_out), d_hid_t, out=preh_t)
+            _elu_backward(torch.mm(raw_t, w_out), hid_t, into=preh_t)
             gd = torch.addmm(gd, preh_t, w_deter)
             torch.mul(gd.unsqueeze(1), factors_t, out=parts_t.view(batch, 3, size))
             mean_t, rstd_t = stats[t]
@@ -409,7 +402,7 @@ class _Observe(torch.autograd.Function):
             )
             g_xh = torch.mm(g_z[-1], w_cell)
             gd = torch.addcmul(g_xh[:, hidden:], gd, omu_t)
-            torch.mul(g_xh[:, :hidden], d_x_t, out=prex_t)
+            _elu_backward(g_xh[:, :hidden], xh_t[:, :hidden], into=prex_t)
             gs = torch.mm(prex_t, w_stoch)
             if spec.resets[t]:
                 gd, gs = gd * keep[t], gs * keep[t]
@@ -422,16 +415,10 @@ class _Observe(torch.autograd.Function):
         def flat(x: Tensor) -> Tensor:
             return x.reshape(rows, -1)
 
-        grads: dict[str, Tensor | None] = {}
-        if needs[7]:  # w_stoch: each step's input sample, zeroed where its sequence starts
+        g_stoch_weight = None
+        if needs[7]:  # each step's input sample, zeroed where its sequence starts
             stoch_in = torch.stack([stoch0.view(shape), *stochs[:-1]]).view(length, batch, stoch_size) * keep
-            grads["w_stoch"] = flat(g_prex).t() @ flat(stoch_in)
-        grads["w_cell"] = flat(torch.stack(g_z)).t() @ flat(xh) if needs[8] else None
-        grads["ln_w"] = (g_parts * zhat).sum((0, 1)) if needs[9] else None
-        grads["ln_b"] = g_parts.sum((0, 1)) if needs[10] else None
-        grads["w_deter"] = flat(g_preh).t() @ flat(torch.stack(deters)) if needs[11] else None
-        grads["w_out"] = flat(g_raw).t() @ flat(hids) if needs[12] else None
-        grads["b_out"] = g_raw.sum((0, 1)) if needs[13] else None
+            g_stoch_weight = flat(g_prex).t() @ flat(stoch_in)
         return (
             None,
             g_prex if needs[1] else None,
@@ -440,11 +427,11 @@ class _Observe(torch.autograd.Function):
             None,
             gd if needs[5] else None,
             gs if needs[6] else None,
-            grads.get("w_stoch"),
-            grads["w_cell"],
-            grads["ln_w"],
-            grads["ln_b"],
-            grads["w_deter"],
-            grads["w_out"],
-            grads["b_out"],
+            g_stoch_weight,
+            flat(torch.stack(g_z)).t() @ flat(xh) if needs[8] else None,
+            (g_parts * zhat).sum((0, 1)) if needs[9] else None,
+            g_parts.sum((0, 1)) if needs[10] else None,
+            flat(g_preh).t() @ flat(torch.stack(deters)) if needs[11] else None,
+            flat(g_raw).t() @ flat(hids) if needs[12] else None,
+            g_raw.sum((0, 1)) if needs[13] else None,
         )
