@@ -19,10 +19,11 @@ base=$(realpath "$1"); new=$(realpath "$2"); data=$(realpath "$3"); out=$4; bloc
 shift $(( $# >= 5 ? 5 : 4 ))
 python=$(dirname "$(realpath "$0")")/../.venv/bin/python
 algo=${ALGO:-dreamerv2}
+pretrain=600  # CoWorld's source steps before its first target phase
 case $algo in
   dreamerv2) length=(--set coworld.iterations=1 --set coworld.target_updates=200); rates=(perf) ;;
   coworld) length=(--set coworld.iterations=1 --set coworld.target_updates=200 --set coworld.source_updates=100
-                   --set coworld.pretrain_steps=600); rates=(target/perf source/perf) ;;
+                   --set coworld.pretrain_steps=$pretrain); rates=(target/perf source/perf) ;;
   *) echo "ALGO must be dreamerv2 or coworld, not $algo" >&2; exit 2 ;;
 esac
 mkdir -p "$out"
@@ -40,12 +41,12 @@ for block in $(seq 0 $((blocks - 1))); do
       --set train.batch_size=16 --set train.seq_len=32 "${length[@]}" \
       --set train.log_every=50 --set train.eval_episodes=1 --logdir "$run" "$@" > "$run.log" 2>&1)
     for rate in "${rates[@]}"; do
-      # the source's windows from its pretraining (before step 600, no target batch in its updates) are left out
+      # the source's windows from its pretraining (no target batch in its updates) are left out
       logged=$("$python" -c 'import json, sys
 rows = [json.loads(line) for line in open(sys.argv[1])]
 key = sys.argv[2] + "/updates_per_s"
-print(" ".join(f"{row[key]:.3f}" for row in rows if key in row and not (key.startswith("source/") and row["step"] <= 600)))' \
-        "$run/metrics.jsonl" "$rate")
+print(" ".join(f"{row[key]:.3f}" for row in rows if key in row and not (key.startswith("source/") and row["step"] <= int(sys.argv[3]))))' \
+        "$run/metrics.jsonl" "$rate" "$pretrain")
       echo "block $block $side load $load $rate/updates_per_s $logged"
     done
   done
