@@ -6,7 +6,9 @@ Both agents are DreamerV2 (:class:`coworld.agents.dreamerv2.DreamerV2`). The thr
 * target world-model step (Alg. 1 line 9, Eq. 3): ``+ beta2 * KL[sg(e_S(o_T)) || e_T(o_T)]`` on the target
   batch, the source model run over the same target frames without gradient (``align_on='latent'``: the
   posteriors' KL averaged over batch and time; ``'embedding'``: the release's softmaxed conv embeddings,
-  summed over time and averaged over the batch as its ``KLDivLoss(reduction="batchmean")`` does);
+  summed over time and averaged over the batch as its ``KLDivLoss(reduction="batchmean")`` does). The source
+  model does not change during a target phase, so :class:`TargetBatches` makes that pass with the batch, ahead
+  on the prefetch thread where ``train.prefetch`` is on;
 * target critic step (line 10, Eq. 6): ``+ alpha * max(zeta * v_T(z), sg(v_S(z)))`` on the target agent's
   imagined states, ``v_S`` being the source critic fed the target features;
 * source world-model step (lines 13-15, Eqs. 4-5): the source model is also run over a target batch and its
@@ -36,7 +38,7 @@ from coworld import interrupt
 from coworld.agents.dreamerv2 import DreamerV2
 from coworld.config import Config, to_dict
 from coworld.data import open_dataset
-from coworld.data.prefetch import prefetched, stop_prefetch
+from coworld.data.prefetch import Prefetcher, stop_prefetch
 from coworld.envs import task_spec
 from coworld.losses.coworld import (
     alignment_loss,
@@ -56,6 +58,8 @@ from coworld.viz.training import log_open_loop
 CHECKPOINT_KIND = "coworld"
 UNBOUNDED = 2**62  # source phases end by pausing after K2 updates, never by a step limit
 ALIGN_ON = ("latent", "embedding")
+ALIGN_SOURCE = "align_source"
+"""The key of a target batch's :meth:`CoWorld.source_alignment`, where :class:`TargetBatches` made it."""
 
 
 class CoWorld:
@@ -85,16 +89,17 @@ class CoWorld:
         batch_t = self.target.prepare(batch)  # the images' phases once, for both world models
         extra = None
         if cfg.align:
-            with torch.no_grad():
-                source_post, _, source_embed = self.source.world_model.observe(batch_t)
+            source = batch_t.get(ALIGN_SOURCE)
+            if source is None:
+                source = self.source_alignment(batch_t)
 
             def extra(_: dict[str, Tensor], aux: dict[str, Any]) -> dict[str, Tensor]:
                 if cfg.align_on == "latent":
                     # averaged over (B, T) like every other DreamerV2 world-model term
-                    term = alignment_loss(source_post["logits"], aux["post"]["logits"]).mean()
+                    term = alignment_loss(source, aux["post"]["logits"]).mean()
                 else:
                     # the release's KLDivLoss(reduction="batchmean") on (B, T, E): summed over T, divided by B
-                    term = embedding_alignment_loss(source_embed, aux["embed"]).sum(dim=1).mean()
+                    term = embedding_alignment_loss(source, aux["embed"]).sum(dim=1).mean()
                 return {"align": cfg.beta2 * term}
 
         metrics, post = self.target.train_world_model(batch_t, extra)
@@ -122,6 +127,18 @@ class CoWorld:
             metrics["coworld/maxmin_active"] = float(seen["active"])
         self.target.updates += 1
         return {f"target/{key}": value for key, value in metrics.items()}
+
+    def source_alignment(self, batch: Mapping[str, Tensor], generator: torch.Generator | None = None) -> Tensor:
+        """What Eq. 3 aligns the target model to on a :meth:`DreamerV2.prepare`-d target batch, from the source
+        model without gradient: its posterior's log-probabilities ``(B, T, S, K)`` (``align_on='latent'``; the
+        latent samples' noise drawn from ``generator``, torch's default if None) or its embeddings ``(B, T, E)``
+        (``'embedding'``)."""
+        world_model = self.source.world_model
+        with torch.no_grad():
+            if self.config.coworld.align_on == "embedding":
+                return world_model.embed(batch)
+            post, _, _ = world_model.observe(batch, generator=generator)
+            return post["logits"]
 
     # -- the source agent's update (Alg. 1 lines 12-16) -----------------------------------------------------------
     def train_source(self, batch: Mapping[str, np.ndarray]) -> dict[str, float]:
@@ -158,6 +175,31 @@ class CoWorld:
     def load_state_dict(self, state: Mapping[str, Any]) -> None:
         self.target.load_state_dict(state["target"])
         self.source.load_state_dict(state["source"])
+
+
+class TargetBatches:
+    """The target dataset's batches as CoWorld's updates read them (a ``prepare`` for :class:`Prefetcher`):
+    each :meth:`DreamerV2.prepare`-d by the target agent, and the first ``aligned`` with their
+    :meth:`CoWorld.source_alignment` under :data:`ALIGN_SOURCE` (where ``coworld.align`` is on).
+
+    A target phase's batches can carry the source model's pass because the source model does not change until
+    the phase ends (its ``aligned`` batches are the phase's own); made ahead, the pass runs on the prefetch
+    thread while the target update before runs. Its latent samples draw from a generator of their own, seeded
+    with ``seed``, so a run makes the same passes with prefetching on or off, and a resumed phase those of an
+    uninterrupted one.
+    """
+
+    def __init__(self, coworld: CoWorld, *, aligned: int, seed: int) -> None:
+        self.coworld = coworld
+        self.aligned = aligned if coworld.config.coworld.align else 0
+        self.generator = torch.Generator(coworld.device).manual_seed(seed)
+
+    def __call__(self, batch: Mapping[str, np.ndarray]) -> dict[str, Tensor]:
+        batch_t = self.coworld.target.prepare(batch)
+        if self.aligned > 0:
+            self.aligned -= 1
+            batch_t = {**batch_t, ALIGN_SOURCE: self.coworld.source_alignment(batch_t, self.generator)}
+        return batch_t
 
 
 class _SourceLearner:
@@ -262,8 +304,11 @@ def train_coworld(job: Any, *, device: torch.device, resumed: bool, progress: bo
                 seed = config.seed + 1000 * (iteration + 1)
                 stop_prefetch(agent.target_batches)
                 batches = iter(dataset.sampler(config.train.batch_size, config.train.seq_len, seed=seed))
-                # made ahead on a background thread, and laid out for the world models (the same batches either way)
-                agent.target_batches = prefetched(batches, agent.target.prepare, config.train.prefetch)
+                # laid out for the world models, with the source model's pass for the target phase's own batches;
+                # made ahead on a background thread where train.prefetch is on (the same batches either way)
+                aligned = cfg.target_updates if progress_state["phase"] == "target" else 0
+                made = TargetBatches(agent, aligned=aligned, seed=seed)
+                agent.target_batches = Prefetcher(batches, made) if config.train.prefetch else map(made, batches)
                 if progress_state["phase"] == "target":
                     rate = Rate(agent.target.updates)
                     for i in range(cfg.target_updates):

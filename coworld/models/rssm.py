@@ -113,12 +113,18 @@ class RSSM(nn.Module):
         return self._posterior(prior, self._embed_share(embed), sample, post_noise), prior
 
     def observe(
-        self, embed: Tensor, action: Tensor, is_first: Tensor, state: State | None = None
+        self,
+        embed: Tensor,
+        action: Tensor,
+        is_first: Tensor,
+        state: State | None = None,
+        generator: torch.Generator | None = None,
     ) -> tuple[State, State]:
         """Run the posterior over sequences; returns ``(post, prior)`` with batch shape ``(B, T)``.
 
         ``embed (B, T, E)``; ``action (B, T, A)`` is the action that led to step ``t``; ``is_first (B, T)``
-        resets the recurrent state; ``state`` (batch ``(B,)``) is the state before step 0 (zeros if None).
+        resets the recurrent state; ``state`` (batch ``(B,)``) is the state before step 0 (zeros if None);
+        ``generator`` draws the categorical samples' noise (torch's default generator if None).
 
         The same computation as :meth:`obs_step` at every ``t``, with the work that does not depend on the
         recurrent state done once for all steps: the actions' share of the recurrent input layer and the
@@ -139,7 +145,7 @@ class RSSM(nn.Module):
         # W [z, a] + b = W_z z + (W_a a + b); a zeroed where the episode starts, as obs_step zeroes it.
         action_share = linear(action.transpose(0, 1) * keep, img_in.weight[:, stoch_size:], img_in.bias)
         stoch_weight = img_in.weight[:, :stoch_size].t()
-        noise = exponential_noise((length, 2, batch, self.stoch, self.classes), action.device)
+        noise = exponential_noise((length, 2, batch, self.stoch, self.classes), action.device, generator)
         # Which steps reset a sequence (on a CPU, where reading them costs no synchronisation): elsewhere the
         # multiplications by `keep` multiply by 1, and before the first step a zero state needs none either.
         if action.device.type == "cpu":

@@ -144,19 +144,26 @@ class WorldModel(nn.Module):
         out["phases"] = phases.float() if phases.device.type == "cpu" else phases
         return out
 
-    def observe(self, batch: dict[str, Tensor], state: State | None = None) -> tuple[State, State, Tensor]:
+    def embed(self, batch: dict[str, Tensor]) -> Tensor:
+        """The encoder's embeddings ``(B, T, E)`` of a batch's images (or of a :meth:`prepare`-d batch's phases)."""
+        phases = batch["phases"] if "phases" in batch else space_to_depth(batch["image"])
+        return self.encoder.from_phases(phases.movedim(-1, -3), pixels=True)
+
+    def observe(
+        self, batch: dict[str, Tensor], state: State | None = None, generator: torch.Generator | None = None
+    ) -> tuple[State, State, Tensor]:
         """Encode a batch (or a :meth:`prepare`-d one) and run the posterior over it.
 
         Returns ``(post, prior, embed)``: states with batch ``(B, T)`` (``deter (B, T, D)``,
         ``logits``/``stoch (B, T, S, K)``) and the embeddings ``(B, T, E)``. The recurrent state and the previous
-        action are zeroed where ``is_first``; ``state`` (batch ``(B,)``) continues from an earlier chunk.
+        action are zeroed where ``is_first``; ``state`` (batch ``(B,)``) continues from an earlier chunk; ``generator``
+        draws the latent samples' noise (torch's default generator if None).
 
         The encoder reads the pixels' 2 x 2 phases (uint8, or their values as float, as :meth:`prepare` leaves them
         on a CPU), which :meth:`ConvEncoder.from_phases` scales in its first layer.
         """
-        phases = batch["phases"] if "phases" in batch else space_to_depth(batch["image"])
-        embed = self.encoder.from_phases(phases.movedim(-1, -3), pixels=True)
-        post, prior = self.rssm.observe(embed, batch["action"], batch["is_first"], state)
+        embed = self.embed(batch)
+        post, prior = self.rssm.observe(embed, batch["action"], batch["is_first"], state, generator)
         return post, prior, embed
 
     def loss(self, batch: dict[str, Tensor]) -> tuple[dict[str, Tensor], dict[str, Any]]:

@@ -1,15 +1,18 @@
-"""Algorithm 1's schedule on the toy pair: a run killed inside a source phase resumes at the train ratio, and the
-two alignment readings of Eq. 3 are reduced as the paper and the release do."""
+"""Algorithm 1's schedule on the toy pair: a run killed inside a source phase resumes at the train ratio, the two
+alignment readings of Eq. 3 are reduced as the paper and the release do, and the source model's pass made ahead
+with a target batch trains as the update's own pass does."""
 
 from __future__ import annotations
 
+import copy
 from pathlib import Path
+from typing import Any
 
 import pytest
 import torch
 
 from coworld.agents import coworld as coworld_module
-from coworld.agents.coworld import CoWorld
+from coworld.agents.coworld import ALIGN_SOURCE, CoWorld, TargetBatches
 from coworld.config import make_config
 from coworld.data import open_dataset
 from coworld.training.online import OnlineTrainer
@@ -81,12 +84,7 @@ def test_a_run_killed_inside_a_source_phase_resumes_without_a_burst_of_updates(
     assert final["source_updates"] == 13 + 2 * 15  # pretraining, then exactly K2 per iteration
 
 
-@pytest.mark.parametrize("align_on", ["latent", "embedding"])
-def test_alignment_term_reduction_matches_the_paper_and_the_release(align_on: str) -> None:
-    config = make_config("tiny", ["device=cpu", "coworld.beta2=1.0", f"coworld.align_on={align_on}"])
-    torch.manual_seed(0)
-    agent = CoWorld(config=config, action_size=2, device="cpu")
-    b, t = 3, 4
+def _target_batch(b: int = 3, t: int = 4) -> dict[str, torch.Tensor]:
     batch = {
         "image": torch.randint(0, 256, (b, t, 64, 64, 3), dtype=torch.uint8),
         "action": torch.rand(b, t, 2) * 2 - 1,
@@ -96,6 +94,15 @@ def test_alignment_term_reduction_matches_the_paper_and_the_release(align_on: st
         "is_terminal": torch.zeros(b, t, dtype=torch.bool),
     }
     batch["is_first"][:, 0] = True
+    return batch
+
+
+@pytest.mark.parametrize("align_on", ["latent", "embedding"])
+def test_alignment_term_reduction_matches_the_paper_and_the_release(align_on: str) -> None:
+    config = make_config("tiny", ["device=cpu", "coworld.beta2=1.0", f"coworld.align_on={align_on}"])
+    torch.manual_seed(0)
+    agent = CoWorld(config=config, action_size=2, device="cpu")
+    batch = _target_batch()
     # The update runs the source model, then the target model, over the batch: the same order and seed draw
     # the same latent samples here.
     torch.manual_seed(1)
@@ -111,3 +118,80 @@ def test_alignment_term_reduction_matches_the_paper_and_the_release(align_on: st
     torch.manual_seed(1)
     metrics = agent.train_target(batch)
     assert metrics["target/coworld/align_kl"] == pytest.approx(float(expected), rel=1e-4)
+
+
+def _tensors(tree: Any, prefix: str = "") -> dict[str, torch.Tensor]:
+    """The tensors of a nested state dict by their path."""
+    if isinstance(tree, torch.Tensor):
+        return {prefix: tree}
+    items = tree.items() if isinstance(tree, dict) else enumerate(tree) if isinstance(tree, list | tuple) else ()
+    return {k: v for key, value in items for k, v in _tensors(value, f"{prefix}/{key}").items()}
+
+
+@pytest.mark.parametrize("align_on", ["latent", "embedding"])
+def test_a_target_batch_made_with_the_source_pass_trains_as_the_updates_own_pass_does(
+    align_on: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    config = make_config("tiny", ["device=cpu", "coworld.beta2=1.0", f"coworld.align_on={align_on}"])
+    torch.manual_seed(0)
+    inline = CoWorld(config=config, action_size=2, device="cpu")
+    ahead = copy.deepcopy(inline)
+    batch = _target_batch(b=4, t=6)
+
+    torch.manual_seed(1)
+    expected = inline.train_target(batch)  # the source pass inside the update, on torch's default generator
+
+    made = TargetBatches(ahead, aligned=1, seed=1)  # a generator of its own, seeded as the default was
+    made_batch = made(batch)
+    assert made_batch[ALIGN_SOURCE].shape == ((4, 6, 8, 8) if align_on == "latent" else (4, 6, 256))
+    assert ALIGN_SOURCE not in made(batch)  # past the batches it was asked to align
+    torch.set_rng_state(made.generator.get_state())  # where the update's own pass left the default generator
+
+    def no_source_pass(*_: Any, **__: Any) -> None:
+        raise AssertionError("the update ran the source model over a batch that carried its pass")
+
+    monkeypatch.setattr(ahead.source.world_model, "embed", no_source_pass)
+    got = ahead.train_target(made_batch)
+    assert got == expected
+    assert expected["target/coworld/align_kl"] > 0.0
+    want, have = _tensors(inline.target.state_dict()), _tensors(ahead.target.state_dict())
+    assert want.keys() == have.keys()
+    changed = [key for key in want if not torch.equal(want[key], have[key])]
+    assert not changed, changed
+
+
+def test_prefetching_leaves_a_coworld_run_unchanged(tmp_path: Path, toy_dataset_writer) -> None:
+    dataset = toy_dataset_writer(tmp_path / "target.h5", "toy_reach_shifted", episodes=3)
+    schedule = [
+        "device=cpu",
+        "train.prefill=50",
+        "train.pretrain_updates=1",
+        "train.train_every=5",
+        "train.eval_episodes=1",
+        "coworld.pretrain_steps=60",
+        "coworld.iterations=2",
+        "coworld.target_updates=3",
+        "coworld.source_updates=2",
+    ]
+    states = {}
+    for prefetch in (False, True):
+        logdir = tmp_path / f"prefetch_{prefetch}"
+        overrides = [*schedule, f"train.prefetch={str(prefetch).lower()}"]
+        job = check_job(
+            algo="coworld",
+            source="toy_reach",
+            target="toy_reach_shifted",
+            dataset=dataset,
+            preset="tiny",
+            logdir=logdir,
+            seed=0,
+            device="cpu",
+            overrides=overrides,
+        )
+        assert run_job(job, progress=False)["target_updates"] == 6
+        states[prefetch] = torch.load(logdir / "checkpoint.pt", weights_only=True)
+    plain, ahead = (_tensors({"target": s["agent"], "source": s["source"]}) for s in (states[False], states[True]))
+    assert plain.keys() == ahead.keys()
+    changed = [key for key in plain if not torch.equal(plain[key], ahead[key])]
+    assert not changed, changed
+    assert states[False]["progress"]["iteration"] == states[True]["progress"]["iteration"] == 2
