@@ -243,8 +243,9 @@ class TrainConfig:
     prefetch: bool = True
     """Offline batches (offline DreamerV2 and its variants, the model-free baselines, CoWorld's target data): the
     next batch is drawn from the dataset and laid out for the model on a background thread while the current update
-    runs (:mod:`coworld.data.prefetch`). The same batches in the same order either way; off, each is made between
-    updates, on the updates' thread."""
+    runs (:mod:`coworld.data.prefetch`), in CoWorld's target phases with the source model's pass over it that the
+    alignment term reads (:class:`coworld.agents.coworld.TargetBatches`). The same batches in the same order either
+    way, and the same weights trained; off, each is made between updates, on the updates' thread."""
     actor_warmup: Annotated[int, NON_NEGATIVE] = 0
     """Updates that train the world model alone before the actor and critic start learning (0: from the first).
     Until then the agent acts with its untrained actor's wide spread, so the data stay varied while the model
