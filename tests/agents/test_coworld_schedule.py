@@ -33,21 +33,26 @@ SCHEDULE = [
 ]
 
 
-def test_a_run_killed_inside_a_source_phase_resumes_without_a_burst_of_updates(
-    tmp_path: Path, toy_dataset_writer, monkeypatch: pytest.MonkeyPatch
-) -> None:
-    dataset = toy_dataset_writer(tmp_path / "target.h5", "toy_reach_shifted", episodes=3)
-    job = check_job(
+def _toy_job(dataset: Path, logdir: Path, overrides: list[str]) -> Any:
+    """A checked CoWorld job on toy_reach -> toy_reach_shifted, tiny preset, seed 0."""
+    return check_job(
         algo="coworld",
         source="toy_reach",
         target="toy_reach_shifted",
         dataset=dataset,
         preset="tiny",
-        logdir=tmp_path / "run",
+        logdir=logdir,
         seed=0,
         device="cpu",
-        overrides=SCHEDULE,
+        overrides=overrides,
     )
+
+
+def test_a_run_killed_inside_a_source_phase_resumes_without_a_burst_of_updates(
+    tmp_path: Path, toy_dataset_writer, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    dataset = toy_dataset_writer(tmp_path / "target.h5", "toy_reach_shifted", episodes=3)
+    job = _toy_job(dataset, tmp_path / "run", SCHEDULE)
     original_train_source = CoWorld.train_source
     calls = {"n": 0}
 
@@ -128,6 +133,14 @@ def _tensors(tree: Any, prefix: str = "") -> dict[str, torch.Tensor]:
     return {k: v for key, value in items for k, v in _tensors(value, f"{prefix}/{key}").items()}
 
 
+def _assert_same_tensors(want: Any, have: Any) -> None:
+    """Two nested state dicts hold the same tensors at the same paths, equal element for element."""
+    want, have = _tensors(want), _tensors(have)
+    assert want.keys() == have.keys()
+    changed = [key for key in want if not torch.equal(want[key], have[key])]
+    assert not changed, changed
+
+
 @pytest.mark.parametrize("align_on", ["latent", "embedding"])
 def test_a_target_batch_made_with_the_source_pass_trains_as_the_updates_own_pass_does(
     align_on: str, monkeypatch: pytest.MonkeyPatch
@@ -154,10 +167,7 @@ def test_a_target_batch_made_with_the_source_pass_trains_as_the_updates_own_pass
     got = ahead.train_target(made_batch)
     assert got == expected
     assert expected["target/coworld/align_kl"] > 0.0
-    want, have = _tensors(inline.target.state_dict()), _tensors(ahead.target.state_dict())
-    assert want.keys() == have.keys()
-    changed = [key for key in want if not torch.equal(want[key], have[key])]
-    assert not changed, changed
+    _assert_same_tensors(inline.target.state_dict(), ahead.target.state_dict())
 
 
 def test_prefetching_leaves_a_coworld_run_unchanged(tmp_path: Path, toy_dataset_writer) -> None:
@@ -177,21 +187,8 @@ def test_prefetching_leaves_a_coworld_run_unchanged(tmp_path: Path, toy_dataset_
     for prefetch in (False, True):
         logdir = tmp_path / f"prefetch_{prefetch}"
         overrides = [*schedule, f"train.prefetch={str(prefetch).lower()}"]
-        job = check_job(
-            algo="coworld",
-            source="toy_reach",
-            target="toy_reach_shifted",
-            dataset=dataset,
-            preset="tiny",
-            logdir=logdir,
-            seed=0,
-            device="cpu",
-            overrides=overrides,
-        )
-        assert run_job(job, progress=False)["target_updates"] == 6
+        assert run_job(_toy_job(dataset, logdir, overrides), progress=False)["target_updates"] == 6
         states[prefetch] = torch.load(logdir / "checkpoint.pt", weights_only=True)
-    plain, ahead = (_tensors({"target": s["agent"], "source": s["source"]}) for s in (states[False], states[True]))
-    assert plain.keys() == ahead.keys()
-    changed = [key for key in plain if not torch.equal(plain[key], ahead[key])]
-    assert not changed, changed
+    plain, ahead = ({"target": s["agent"], "source": s["source"]} for s in (states[False], states[True]))
+    _assert_same_tensors(plain, ahead)
     assert states[False]["progress"]["iteration"] == states[True]["progress"]["iteration"] == 2
