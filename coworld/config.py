@@ -436,10 +436,12 @@ class Config:
     device: Annotated[str, OneOf(("auto", "cpu", "cuda"), pattern=r"cuda:\d+", pattern_text="cuda:N")] = "auto"
     """'auto' (CUDA when available), 'cpu' or 'cuda'."""
     precision: Annotated[str, OneOf(("auto", "bf16", "fp32"))] = "auto"
-    """'auto' (bf16 autocast on CUDA, fp32 on CPU), 'bf16' or 'fp32'."""
+    """'auto' (bf16 autocast on CUDA, fp32 on CPU), 'bf16' or 'fp32'. On one H100 the paper preset's eager update
+    was 1.19x slower in bf16 than in fp32: that update is bound by kernel launches (benchmarks/RESULTS.md, "GPU")."""
     compile: bool = False
     """torch.compile the world model's loss and the imagination rollout whole, and the networks acting calls (about 5
-    minutes of compilation at start on the CPU, then 0.85x the eager update time: benchmarks/RESULTS.md)."""
+    minutes of compilation at start on the CPU, then 0.85x the eager update time; on an H100 the paper preset's had
+    not finished compiling after 4 minutes: benchmarks/RESULTS.md)."""
     drqbc: DrqBcConfig = field(default_factory=DrqBcConfig)
     penalty: PenaltyConfig = field(default_factory=PenaltyConfig)
 
