@@ -7,6 +7,7 @@ Examples::
     python benchmarks/train_throughput.py                              # tiny preset on CPU (2 threads)
     python benchmarks/train_throughput.py --preset paper --device cpu --updates 1 --warmup 0
     python benchmarks/train_throughput.py --preset paper --device cuda --compare   # fp32 / bf16, eager / compiled
+    # on a GPU, benchmarks/paper_gpu.py adds peak GPU memory, acting and the ETA of a paper CoWorld run
     python benchmarks/train_throughput.py --profile --threads 1 --updates 3 --set train.batch_size=16 \
         --set train.seq_len=32    # where an update's time goes, op by op
     python benchmarks/train_throughput.py --roofline --threads 1 --updates 5 --set train.batch_size=16 \
