@@ -187,14 +187,16 @@ def eta(config: Config, t: Mapping[str, float], env_s: float, act_s: float, epis
     source_steps = cw.iterations * cw.source_updates * tr.train_every
     evals = (cw.pretrain_steps + source_steps) // tr.eval_every + cw.iterations // cw.eval_every
     eval_s = evals * tr.eval_episodes * episode * step
-    updates_s = (
-        pre_updates * t["dreamerv2"] + cw.iterations * (cw.target_updates * t["coworld target"])
-    ) + cw.iterations * cw.source_updates * t["coworld source"]
+    regular = pre_updates - tr.pretrain_updates  # the pretraining's updates every train_every steps
+    source = cw.iterations * cw.source_updates
+    offline_s = tr.pretrain_updates * t["dreamerv2"] + cw.iterations * cw.target_updates * t["coworld target"]
+    updates_s = offline_s + regular * t["dreamerv2"] + source * t["coworld source"]
     steps_s = (cw.pretrain_steps + source_steps) * step
-    overlapped = (
-        pre_updates * max(t["dreamerv2"], tr.train_every * step)
-        + cw.iterations * cw.target_updates * t["coworld target"]
-        + cw.iterations * cw.source_updates * max(t["coworld source"], tr.train_every * step)
+    overlapped = (  # an update and the train_every steps beside it take the longer of the two; the prefill alone
+        offline_s
+        + tr.prefill * step
+        + regular * max(t["dreamerv2"], tr.train_every * step)
+        + source * max(t["coworld source"], tr.train_every * step)
     )
     return {
         "in_turn_h": (updates_s + steps_s + eval_s) / 3600,
