@@ -308,11 +308,16 @@ class DreamerV2:
         are each one graph, so the small ops of every step fuse (on a CPU the networks compiled alone gained 2%;
         benchmarks/RESULTS.md, issue 19). Random numbers come from the eager generator (inductor's
         ``fallback_random``), so a compiled agent draws what an eager one draws.
+
+        Shapes are static (``dynamic=False``): a batch of another size compiles anew. With torch's automatic
+        dynamic shapes the second size traced symbolic ones, and the truncated normal's ``torch.rand`` over a
+        symbolic shape failed to trace, so the update raised (and the paper preset's first one already did: the
+        networks' shared ``forward`` is traced at several sizes within one update).
         """
         wm, ac = self.world_model, self.actor_critic
         options = {"fallback_random": True}
-        wm.loss = torch.compile(wm.loss, options=options)  # type: ignore[method-assign]
-        ac.imagine = torch.compile(ac.imagine, options=options)  # type: ignore[method-assign]
+        wm.loss = torch.compile(wm.loss, options=options, dynamic=False)  # type: ignore[method-assign]
+        ac.imagine = torch.compile(ac.imagine, options=options, dynamic=False)  # type: ignore[method-assign]
         for module in (
             wm.encoder,
             wm.decoder,
@@ -327,7 +332,7 @@ class DreamerV2:
             ac.slow_critic,
         ):
             if module is not None:
-                module.compile()
+                module.compile(dynamic=False)
 
 
 class PolicyCopy:
