@@ -439,9 +439,10 @@ class Config:
     """'auto' (bf16 autocast on CUDA, fp32 on CPU), 'bf16' or 'fp32'. On one H100 the paper preset's eager update
     was 1.19x slower in bf16 than in fp32: that update is bound by kernel launches (benchmarks/RESULTS.md, "GPU")."""
     compile: bool = False
-    """torch.compile the world model's loss and the imagination rollout whole, and the networks acting calls (about 5
-    minutes of compilation at start on the CPU, then 0.85x the eager update time; on an H100 the paper preset's had
-    not finished compiling after 4 minutes: benchmarks/RESULTS.md)."""
+    """torch.compile the world model's loss and the imagination rollout whole, and the networks acting calls. Shapes
+    are static: a batch of another size compiles anew. On the CPU: about 5 minutes of compilation at start, and
+    since issue 19's eager speed-ups no faster than eager (README, "Measured"). On an H100 the paper preset's had
+    not finished compiling after 4 minutes (benchmarks/RESULTS.md, "GPU")."""
     drqbc: DrqBcConfig = field(default_factory=DrqBcConfig)
     penalty: PenaltyConfig = field(default_factory=PenaltyConfig)
 
