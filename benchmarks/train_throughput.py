@@ -69,7 +69,7 @@ from learning_side_by_side import REFERENCE_NESTED, REFERENCE_SETTINGS
 from torch.utils.flop_counter import FlopCounterMode
 
 from coworld.agents.dreamerv2 import DreamerV2
-from coworld.config import Config, make_config
+from coworld.config import PRESETS, Config, make_config
 from coworld.models.actor_critic import flatten_states
 from coworld.models.networks import frozen_parameters
 from coworld.training.run import resolve_device
@@ -594,7 +594,7 @@ def matmul_rate(n: int, repeats: int = 5) -> float:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--preset", default="tiny", choices=["tiny", "paper"])
+    parser.add_argument("--preset", default="tiny", choices=sorted(PRESETS))
     parser.add_argument("--device", default="cpu", help="cpu, cuda or auto")
     parser.add_argument("--threads", type=int, default=2, help="torch CPU threads")
     parser.add_argument("--updates", type=int, default=20, help="measured calls per part")
