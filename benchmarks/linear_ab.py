@@ -20,13 +20,13 @@ import torch
 from train_throughput import random_batch  # this script's folder is first on sys.path
 
 from coworld.agents.dreamerv2 import DreamerV2
-from coworld.config import make_config
+from coworld.config import PRESETS, make_config
 from coworld.models import autotune, networks
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--preset", default="tiny", choices=["tiny", "paper"])
+    parser.add_argument("--preset", default="tiny", choices=sorted(PRESETS))
     parser.add_argument("--pairs", type=int, default=20, help="alternating pairs of updates to time")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="config override")
     args = parser.parse_args()

@@ -47,7 +47,8 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from train_throughput import random_batch  # noqa: E402
 
-from coworld.config import Config, make_config  # noqa: E402
+from coworld.config import PRESETS, Config, make_config  # noqa: E402
+from coworld.storage import write_text_atomically  # noqa: E402
 from coworld.training.run import resolve_device  # noqa: E402
 
 MODES = ("bf16-eager", "fp32-eager", "bf16-compile", "fp32-compile")
@@ -280,7 +281,7 @@ def report(args: argparse.Namespace, records: list[dict[str, Any]]) -> dict[str,
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--preset", default="paper", choices=["tiny", "paper"])
+    parser.add_argument("--preset", default="paper", choices=sorted(PRESETS))
     parser.add_argument("--device", default="cuda", help="cuda or cpu (a dry run)")
     parser.add_argument("--modes", default=",".join(MODES), help=f"comma-separated, of {', '.join(MODES)}")
     parser.add_argument("--updates", type=int, default=20, help="timed updates per update kind")
@@ -319,7 +320,7 @@ def main() -> None:
         records += run_part(args, ["update", mode], limit(args.compile_limit))
     out = report(args, records)
     if args.json:
-        Path(args.json).write_text(json.dumps(out, indent=2))
+        write_text_atomically(args.json, json.dumps(out, indent=2))
 
 
 if __name__ == "__main__":
