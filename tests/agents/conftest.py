@@ -3,10 +3,13 @@
 from __future__ import annotations
 
 import importlib.util
+from collections.abc import Callable
 from pathlib import Path
 from types import ModuleType
+from typing import Any
 
 import pytest
+import torch
 
 
 @pytest.fixture(scope="session")
@@ -17,3 +20,46 @@ def toy_expert() -> ModuleType:
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
+
+
+def make_target_batch(b: int = 3, t: int = 4, action_size: int = 2) -> dict[str, torch.Tensor]:
+    """A random batch in the replay convention: uint8 images ``(B, T, 64, 64, 3)``, actions in [-1, 1], rewards in
+    [0, 1), each window starting fresh (``is_first`` on its first step). Draws from torch's default generator."""
+    batch = {
+        "image": torch.randint(0, 256, (b, t, 64, 64, 3), dtype=torch.uint8),
+        "action": torch.rand(b, t, action_size) * 2 - 1,
+        "reward": torch.rand(b, t),
+        "is_first": torch.zeros(b, t, dtype=torch.bool),
+        "is_last": torch.zeros(b, t, dtype=torch.bool),
+        "is_terminal": torch.zeros(b, t, dtype=torch.bool),
+    }
+    batch["is_first"][:, 0] = True
+    return batch
+
+
+@pytest.fixture(scope="session")
+def target_batch() -> Callable[..., dict[str, torch.Tensor]]:
+    """:func:`make_target_batch`: ``(b, t, action_size) -> batch``."""
+    return make_target_batch
+
+
+@pytest.fixture(scope="session")
+def coworld_toy_job() -> Callable[[Path, Path, list[str]], Any]:
+    """``(dataset, logdir, overrides) -> job``: a checked CoWorld job on toy_reach -> toy_reach_shifted, tiny
+    preset, seed 0."""
+    from coworld.training.train import check_job
+
+    def job(dataset: Path, logdir: Path, overrides: list[str]) -> Any:
+        return check_job(
+            algo="coworld",
+            source="toy_reach",
+            target="toy_reach_shifted",
+            dataset=dataset,
+            preset="tiny",
+            logdir=logdir,
+            seed=0,
+            device="cpu",
+            overrides=overrides,
+        )
+
+    return job

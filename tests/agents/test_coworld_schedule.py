@@ -16,7 +16,7 @@ from coworld.agents.coworld import ALIGN_SOURCE, CoWorld, TargetBatches
 from coworld.config import make_config
 from coworld.data import open_dataset
 from coworld.training.online import OnlineTrainer
-from coworld.training.train import check_job, run_job
+from coworld.training.train import run_job
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -33,26 +33,11 @@ SCHEDULE = [
 ]
 
 
-def _toy_job(dataset: Path, logdir: Path, overrides: list[str]) -> Any:
-    """A checked CoWorld job on toy_reach -> toy_reach_shifted, tiny preset, seed 0."""
-    return check_job(
-        algo="coworld",
-        source="toy_reach",
-        target="toy_reach_shifted",
-        dataset=dataset,
-        preset="tiny",
-        logdir=logdir,
-        seed=0,
-        device="cpu",
-        overrides=overrides,
-    )
-
-
 def test_a_run_killed_inside_a_source_phase_resumes_without_a_burst_of_updates(
-    tmp_path: Path, toy_dataset_writer, monkeypatch: pytest.MonkeyPatch
+    tmp_path: Path, toy_dataset_writer, coworld_toy_job, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     dataset = toy_dataset_writer(tmp_path / "target.h5", "toy_reach_shifted", episodes=3)
-    job = _toy_job(dataset, tmp_path / "run", SCHEDULE)
+    job = coworld_toy_job(dataset, tmp_path / "run", SCHEDULE)
     original_train_source = CoWorld.train_source
     calls = {"n": 0}
 
@@ -89,25 +74,12 @@ def test_a_run_killed_inside_a_source_phase_resumes_without_a_burst_of_updates(
     assert final["source_updates"] == 13 + 2 * 15  # pretraining, then exactly K2 per iteration
 
 
-def _target_batch(b: int = 3, t: int = 4) -> dict[str, torch.Tensor]:
-    batch = {
-        "image": torch.randint(0, 256, (b, t, 64, 64, 3), dtype=torch.uint8),
-        "action": torch.rand(b, t, 2) * 2 - 1,
-        "reward": torch.rand(b, t),
-        "is_first": torch.zeros(b, t, dtype=torch.bool),
-        "is_last": torch.zeros(b, t, dtype=torch.bool),
-        "is_terminal": torch.zeros(b, t, dtype=torch.bool),
-    }
-    batch["is_first"][:, 0] = True
-    return batch
-
-
 @pytest.mark.parametrize("align_on", ["latent", "embedding"])
-def test_alignment_term_reduction_matches_the_paper_and_the_release(align_on: str) -> None:
+def test_alignment_term_reduction_matches_the_paper_and_the_release(align_on: str, target_batch) -> None:
     config = make_config("tiny", ["device=cpu", "coworld.beta2=1.0", f"coworld.align_on={align_on}"])
     torch.manual_seed(0)
     agent = CoWorld(config=config, action_size=2, device="cpu")
-    batch = _target_batch()
+    batch = target_batch()
     # The update runs the source model, then the target model, over the batch: the same order and seed draw
     # the same latent samples here.
     torch.manual_seed(1)
@@ -143,13 +115,13 @@ def _assert_same_tensors(want: Any, have: Any) -> None:
 
 @pytest.mark.parametrize("align_on", ["latent", "embedding"])
 def test_a_target_batch_made_with_the_source_pass_trains_as_the_updates_own_pass_does(
-    align_on: str, monkeypatch: pytest.MonkeyPatch
+    align_on: str, target_batch, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     config = make_config("tiny", ["device=cpu", "coworld.beta2=1.0", f"coworld.align_on={align_on}"])
     torch.manual_seed(0)
     inline = CoWorld(config=config, action_size=2, device="cpu")
     ahead = copy.deepcopy(inline)
-    batch = _target_batch(b=4, t=6)
+    batch = target_batch(b=4, t=6)
 
     torch.manual_seed(1)
     expected = inline.train_target(batch)  # the source pass inside the update, on torch's default generator
@@ -170,7 +142,7 @@ def test_a_target_batch_made_with_the_source_pass_trains_as_the_updates_own_pass
     _assert_same_tensors(inline.target.state_dict(), ahead.target.state_dict())
 
 
-def test_prefetching_leaves_a_coworld_run_unchanged(tmp_path: Path, toy_dataset_writer) -> None:
+def test_prefetching_leaves_a_coworld_run_unchanged(tmp_path: Path, toy_dataset_writer, coworld_toy_job) -> None:
     dataset = toy_dataset_writer(tmp_path / "target.h5", "toy_reach_shifted", episodes=3)
     schedule = [
         "device=cpu",
@@ -187,7 +159,7 @@ def test_prefetching_leaves_a_coworld_run_unchanged(tmp_path: Path, toy_dataset_
     for prefetch in (False, True):
         logdir = tmp_path / f"prefetch_{prefetch}"
         overrides = [*schedule, f"train.prefetch={str(prefetch).lower()}"]
-        assert run_job(_toy_job(dataset, logdir, overrides), progress=False)["target_updates"] == 6
+        assert run_job(coworld_toy_job(dataset, logdir, overrides), progress=False)["target_updates"] == 6
         states[prefetch] = torch.load(logdir / "checkpoint.pt", weights_only=True)
     plain, ahead = ({"target": s["agent"], "source": s["source"]} for s in (states[False], states[True]))
     _assert_same_tensors(plain, ahead)
