@@ -84,7 +84,8 @@ class CoWorld:
 
     # -- the target agent's update (Alg. 1 lines 8-10) ------------------------------------------------------------
     def train_target(self, batch: Mapping[str, np.ndarray]) -> dict[str, float]:
-        """One target world-model step with Eq. 3 and one target actor-critic step with Eq. 6."""
+        """One target world-model step with Eq. 3 and one target actor-critic step with Eq. 6 (the latter, as in
+        :meth:`DreamerV2.train`, only once the target agent has made ``train.actor_warmup`` updates)."""
         cfg = self.config.coworld
         batch_t = self.target.prepare(batch)  # the images' phases once, for both world models
         extra = None
@@ -121,7 +122,8 @@ class CoWorld:
                 )
                 return cfg.alpha * value_regulariser(value, source_value, cfg.zeta)
 
-        metrics.update(self.target.train_actor_critic(post, regulariser, is_terminal=batch_t["is_terminal"]))
+        if self.target.updates >= self.config.train.actor_warmup:  # as DreamerV2.train: the world model alone first
+            metrics.update(self.target.train_actor_critic(post, regulariser, is_terminal=batch_t["is_terminal"]))
         if seen:
             metrics.update({f"coworld/{key}_value": float(seen[key]) for key in ("target", "source")})
             metrics["coworld/maxmin_active"] = float(seen["active"])
@@ -142,7 +144,8 @@ class CoWorld:
 
     # -- the source agent's update (Alg. 1 lines 12-16) -----------------------------------------------------------
     def train_source(self, batch: Mapping[str, np.ndarray]) -> dict[str, float]:
-        """One source world-model step (with Eqs. 4-5 on a target batch) and one source actor-critic step."""
+        """One source world-model step (with Eqs. 4-5 on a target batch) and one source actor-critic step (once the
+        source agent has made ``train.actor_warmup`` updates, pretraining included)."""
         cfg = self.config.coworld
         extra = None
         if cfg.reward_relabel and self.target_batches is not None:
@@ -158,7 +161,8 @@ class CoWorld:
         metrics, post = self.source.train_world_model(batch_t, extra)
         if "wm/relabel" in metrics:
             metrics["coworld/relabel_reward_loss"] = metrics.pop("wm/relabel")
-        metrics.update(self.source.train_actor_critic(post, is_terminal=batch_t["is_terminal"]))
+        if self.source.updates >= self.config.train.actor_warmup:
+            metrics.update(self.source.train_actor_critic(post, is_terminal=batch_t["is_terminal"]))
         self.source.updates += 1
         return {f"source/{key}": value for key, value in metrics.items()}
 

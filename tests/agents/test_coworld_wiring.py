@@ -1,0 +1,272 @@
+"""CoWorld's wiring, through the agents' real update methods: every coefficient and every batch in its place.
+
+The pure functions of Eqs. 3-6 have known-answer tests (tests/losses/test_coworld_losses.py); these pin how
+:class:`coworld.agents.coworld.CoWorld` calls them. Each coefficient differs from 1 and from the others (``beta2``
+0.7, ``k`` 0.3, ``alpha`` 0.4, ``zeta`` 0.6), so a dropped scale or a swapped ``k`` and ``1 - k`` changes a value.
+Each test spies on the update as it runs (the term it adds, the world-model aux it read, the random state it drew
+from) and recomputes the term from the paper's formula, written out here rather than taken from the loss module.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import pytest
+import torch
+from torch import Tensor
+
+from coworld.agents.coworld import CoWorld
+from coworld.config import make_config
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+BETA2, K, ALPHA, ZETA = 0.7, 0.3, 0.4, 0.6
+COEFFICIENTS = [f"coworld.beta2={BETA2}", f"coworld.k={K}", f"coworld.alpha={ALPHA}", f"coworld.zeta={ZETA}"]
+
+
+def _agent(*overrides: str) -> CoWorld:
+    torch.manual_seed(0)
+    config = make_config("tiny", ["device=cpu", *COEFFICIENTS, *overrides])
+    return CoWorld(config=config, action_size=2, device="cpu")
+
+
+def _snapshot(*modules: torch.nn.Module) -> list[Tensor]:
+    return [tensor.detach().clone() for module in modules for tensor in module.state_dict().values()]
+
+
+def _unchanged(before: list[Tensor], *modules: torch.nn.Module) -> bool:
+    after = _snapshot(*modules)
+    return len(before) == len(after) and all(torch.equal(a, b) for a, b in zip(before, after, strict=True))
+
+
+def _spy_world_model_step(agent: Any, captured: dict[str, Any], check: Callable[..., None] | None = None) -> None:
+    """Wrap ``agent.train_world_model`` so that the extra-loss hook it is given records the aux it read, the terms
+    it returned and torch's random state before it ran, and calls ``check(terms, aux)`` while the graph is alive."""
+    original = agent.train_world_model
+
+    def spy(batch: Any, extra_loss: Any = None) -> Any:
+        if extra_loss is None:
+            captured["extra"] = None
+            return original(batch, None)
+
+        def recording(batch_t: dict[str, Tensor], aux: dict[str, Any]) -> dict[str, Tensor]:
+            captured["rng"] = torch.get_rng_state()
+            terms = extra_loss(batch_t, aux)
+            captured.update(extra=terms, aux_loss=aux["loss"].detach(), post_logits=aux["post"]["logits"].detach())
+            captured["embed"] = aux["embed"].detach()
+            if check is not None:
+                after = torch.get_rng_state()
+                check(terms, aux)
+                torch.set_rng_state(after)
+            return terms
+
+        return original(batch, recording)
+
+    agent.train_world_model = spy
+
+
+# -- Eq. 3 ------------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("align_on", ["latent", "embedding"])
+def test_eq3_adds_beta2_times_the_kl_to_the_source_models_reading_of_the_target_frames(
+    align_on: str, target_batch
+) -> None:
+    """Eq. 3 in the target world-model step: ``beta2 * KL[sg(e_S(o_T)) || e_T(o_T)]``, where ``e_S(o_T)`` is the
+    source model's posterior (or softmaxed embedding) on the *target* batch's frames, made without gradient, and the
+    term is added once to the loss the target model's optimiser steps on. The source model does not move."""
+    agent = _agent(f"coworld.align_on={align_on}", "coworld.value_reg=false")
+    batch = target_batch(b=3, t=5)
+    prepared = agent.target.prepare(batch)
+    captured: dict[str, Any] = {}
+    _spy_world_model_step(agent.target, captured)
+    source_before = _snapshot(agent.source.world_model, agent.source.actor_critic)
+    target_before = _snapshot(agent.target.world_model)
+    torch.manual_seed(3)
+    start = torch.get_rng_state()  # the update's own source pass draws its latent samples first
+    metrics = agent.train_target(batch)
+
+    assert _unchanged(source_before, agent.source.world_model, agent.source.actor_critic)
+    assert not _unchanged(target_before, agent.target.world_model)
+    assert all(p.grad is None for p in agent.source.world_model.parameters())
+    torch.set_rng_state(start)
+    with torch.no_grad():  # the source model, unchanged, over the same target frames, from the same random state
+        source_post, _, source_embed = agent.source.world_model.observe(prepared)
+    term = captured["extra"]["align"].detach()
+    if align_on == "latent":
+        log_p = torch.log_softmax(source_post["logits"], -1)
+        log_q = torch.log_softmax(captured["post_logits"], -1)
+        kl = (log_p.exp() * (log_p - log_q)).sum((-2, -1)).mean()  # summed over the latents, mean over (B, T)
+    else:
+        log_p, log_q = torch.log_softmax(source_embed, -1), torch.log_softmax(captured["embed"], -1)
+        kl = (log_p.exp() * (log_p - log_q)).sum(-1).sum(1).mean()  # the release's batchmean: summed over T
+    assert float(kl) > 0.01
+    assert float(term) == pytest.approx(BETA2 * float(kl), rel=1e-4)
+    assert metrics["target/coworld/align_kl"] == pytest.approx(float(kl), rel=1e-4)
+    assert metrics["target/wm/loss"] == pytest.approx(float(captured["aux_loss"]) + BETA2 * float(kl), rel=1e-5)
+
+
+def test_eq3_gives_the_target_model_beta2_times_the_kls_gradient_and_the_source_model_none(target_batch) -> None:
+    """The alignment term's gradient, checked while the update runs: ``beta2`` times the gradient of the KL with
+    respect to the target posterior's logits, ``beta2 * (softmax(q) - softmax(p_S)) / (B T)``, and nothing
+    flows to the source side (its logits come detached)."""
+    agent = _agent("coworld.value_reg=false")
+    batch = target_batch(b=2, t=4)
+    seen: dict[str, Tensor] = {}
+
+    def check(terms: dict[str, Tensor], aux: dict[str, Any]) -> None:
+        logits = aux["post"]["logits"]
+        (grad,) = torch.autograd.grad(terms["align"], logits, retain_graph=True)
+        seen.update(grad=grad, logits=logits.detach())
+
+    captured: dict[str, Any] = {}
+    _spy_world_model_step(agent.target, captured, check)
+    torch.manual_seed(4)
+    start = torch.get_rng_state()
+    agent.train_target(batch)
+    torch.set_rng_state(start)
+    with torch.no_grad():
+        source_post, _, _ = agent.source.world_model.observe(agent.target.prepare(batch))
+    b, t = batch["reward"].shape
+    expected = BETA2 * (torch.softmax(seen["logits"], -1) - torch.softmax(source_post["logits"], -1)) / (b * t)
+    torch.testing.assert_close(seen["grad"], expected, rtol=1e-4, atol=1e-8)
+
+
+# -- Eqs. 4-5 ---------------------------------------------------------------------------------------------------
+
+
+def test_eq4_relabels_target_frames_through_the_source_model_with_k_on_its_prediction(target_batch) -> None:
+    """Eqs. 4-5 in the source world-model step: the source model reads the *target* batch, its reward head
+    predicts ``r_S``, and the head regresses ``k * sg(r_S) + (1 - k) * r_T`` (``r_T`` the target batch's rewards)
+    with a unit-Gaussian NLL, averaged over ``(B, T)`` and added with weight 1 to the ordinary world-model loss on
+    the source batch (Eq. 5's two expectations). The label carries no gradient, so the head's gradient is
+    ``(1 - k) * (r_S - r_T) / (B T)``, not ``(1 - k)^2 * ...``. The target agent does not move."""
+    agent = _agent("coworld.value_reg=false", "coworld.align=false")
+    source_batch, relabel_batch = target_batch(b=3, t=5), target_batch(b=3, t=5)
+    relabel_batch["reward"] = relabel_batch["reward"] * 4.0 - 2.0  # far from the untrained head's ~0 predictions
+    prepared = agent.target.prepare(relabel_batch)
+    agent.target_batches = iter([prepared])
+    wm = agent.source.world_model
+    head_params = list(wm.reward_head.parameters())
+    seen: dict[str, Any] = {}
+
+    def check(terms: dict[str, Tensor], aux: dict[str, Any]) -> None:
+        torch.set_rng_state(captured["rng"])  # the latent samples the hook's own pass drew
+        post, _, _ = wm.observe(prepared)
+        pred = wm.reward_head(wm.features(post)).mean
+        label = K * pred.detach() + (1.0 - K) * relabel_batch["reward"]
+        expected = (0.5 * (pred - label).square()).mean()
+        got = torch.autograd.grad(terms["relabel"], head_params, retain_graph=True)
+        want = torch.autograd.grad(expected, head_params)
+        seen.update(term=terms["relabel"].detach(), expected=expected.detach(), got=got, want=want)
+        seen["pred_grad"] = torch.autograd.grad(0.5 * (pred - label).square().mean(), pred)[0]
+        seen["pred_minus_reward"] = (pred - relabel_batch["reward"]).detach()
+
+    captured: dict[str, Any] = {}
+    _spy_world_model_step(agent.source, captured, check)
+    target_before = _snapshot(agent.target.world_model, agent.target.actor_critic)
+    torch.manual_seed(5)
+    metrics = agent.train_source(source_batch)
+
+    assert _unchanged(target_before, agent.target.world_model, agent.target.actor_critic)
+    assert float(seen["expected"]) > 0.1
+    assert float(seen["term"]) == pytest.approx(float(seen["expected"]), rel=1e-5)
+    for got, want in zip(seen["got"], seen["want"], strict=True):
+        torch.testing.assert_close(got, want, rtol=1e-4, atol=1e-7)
+    b, t = relabel_batch["reward"].shape
+    torch.testing.assert_close(seen["pred_grad"], (1.0 - K) * seen["pred_minus_reward"] / (b * t))
+    assert metrics["source/coworld/relabel_reward_loss"] == pytest.approx(float(seen["expected"]), rel=1e-5)
+    # Eq. 5's first expectation stays in: the source batch's own loss (its reward term included) plus the second
+    assert metrics["source/wm/loss"] == pytest.approx(float(captured["aux_loss"]) + float(seen["expected"]), rel=1e-5)
+    assert metrics["source/wm/reward"] > 0.0
+
+
+def test_eq4_takes_one_target_batch_per_source_update_and_none_when_off(target_batch) -> None:
+    """Each source update draws exactly one batch from ``target_batches``; with ``coworld.reward_relabel=false``
+    (or no target batches, as in the pretraining) the source step is plain DreamerV2 and adds no term."""
+    agent = _agent("coworld.value_reg=false", "coworld.align=false")
+    drawn: list[int] = []
+
+    def stream():
+        for i in range(3):
+            drawn.append(i)
+            yield agent.target.prepare(target_batch(b=2, t=3))
+
+    agent.target_batches = stream()
+    agent.train_source(target_batch(b=2, t=3))
+    agent.train_source(target_batch(b=2, t=3))
+    assert drawn == [0, 1]
+    off = _agent("coworld.reward_relabel=false")
+    off.target_batches = stream()
+    metrics = off.train_source(target_batch(b=2, t=3))
+    assert drawn == [0, 1] and "source/coworld/relabel_reward_loss" not in metrics
+    agent.target_batches = None
+    assert "source/coworld/relabel_reward_loss" not in agent.train_source(target_batch(b=2, t=3))
+
+
+# -- Eq. 6 ------------------------------------------------------------------------------------------------------
+
+
+def test_eq6_adds_alpha_times_the_max_of_zeta_v_target_and_the_frozen_source_value(target_batch) -> None:
+    """Eq. 6 in the target critic step: ``alpha * max(zeta * v_T(z), sg(v_S(z)))`` on the target agent's
+    imagined states, ``v_S`` the source critic fed the same features. Its gradient with respect to ``v_T`` is
+    ``alpha * zeta`` where ``zeta * v_T > v_S`` and 0 where the source side wins; the source critic gets none."""
+    agent = _agent("coworld.align=false")
+    with torch.no_grad():  # a source critic of 0 everywhere: the max switches sides where v_T changes sign
+        for param in agent.source.actor_critic.critic.parameters():
+            param.zero_()
+    calls: list[dict[str, Tensor]] = []
+    original = agent.target.train_actor_critic
+
+    def spy(post: Any, regulariser: Any = None, **kwargs: Any) -> Any:
+        assert regulariser is not None
+
+        def recording(feat: Tensor, value: Tensor) -> Tensor:
+            out = regulariser(feat, value)
+            (grad,) = torch.autograd.grad(out.sum(), value, retain_graph=True)
+            calls.append({"feat": feat.detach(), "value": value.detach(), "out": out.detach(), "grad": grad})
+            return out
+
+        return original(post, recording, **kwargs)
+
+    agent.target.train_actor_critic = spy
+    source_critic = _snapshot(agent.source.actor_critic)
+    metrics = agent.train_target(target_batch(b=2, t=4))
+
+    assert len(calls) == 1
+    call = calls[0]
+    with torch.no_grad():
+        source_value = agent.source.actor_critic.critic(call["feat"]).mean
+    assert torch.equal(source_value, torch.zeros_like(source_value))
+    active = ZETA * call["value"] > source_value
+    assert 0 < int(active.sum()) < active.numel()  # both sides of the max are in play
+    expected = ALPHA * torch.where(active, ZETA * call["value"], source_value)
+    torch.testing.assert_close(call["out"], expected)
+    torch.testing.assert_close(call["grad"], ALPHA * ZETA * active.float())
+    assert metrics["target/coworld/maxmin_active"] == pytest.approx(float(active.float().mean()))
+    assert metrics["target/critic/regulariser"] == pytest.approx(float(expected.mean()), rel=1e-5)
+    assert _unchanged(source_critic, agent.source.actor_critic)
+    assert all(p.grad is None for p in agent.source.actor_critic.parameters())
+
+
+# -- Algorithm 1's schedule --------------------------------------------------------------------------------------
+
+
+def test_actor_warmup_holds_the_actor_and_critic_of_both_agents(target_batch) -> None:
+    """``train.actor_warmup`` updates train the world model alone, in CoWorld's target and source steps as in
+    DreamerV2's ``train``: the actor, critic and slow critic stay as they were, and no actor-critic metric is
+    logged; the update after them trains them (Eq. 6's term with them, on the target side)."""
+    agent = _agent("train.actor_warmup=2")
+    agent.target_batches = iter([agent.target.prepare(target_batch(b=2, t=3)) for _ in range(3)])
+    for side, train in (("target", agent.train_target), ("source", agent.train_source)):
+        learner = getattr(agent, side)
+        for update in range(3):
+            before = _snapshot(learner.actor_critic)
+            metrics = train(target_batch(b=2, t=3))
+            warming = update < 2
+            assert _unchanged(before, learner.actor_critic) == warming, (side, update)
+            assert (f"{side}/critic/loss" in metrics) != warming, (side, update)
+            assert (f"{side}/coworld/maxmin_active" in metrics) == (side == "target" and not warming)
+            assert f"{side}/wm/loss" in metrics
+        assert learner.updates == 3
