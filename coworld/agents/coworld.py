@@ -19,9 +19,10 @@ Schedule: pretrain the source agent online for ``coworld.pretrain_steps`` enviro
 ``source_updates`` (K2) source updates interleaved with source environment steps at the train ratio. The
 source episodes run on across phase boundaries (the pretraining cut and the pauses leave no mark in the
 source replay).
-A checkpoint is written after every phase; a killed run resumes from the last one. Each target phase draws
-its batches from a sampler seeded by (seed, iteration), so a resumed run sees the batches an uninterrupted one
-would have.
+A checkpoint is written after every phase; a killed run resumes from the last one. Each iteration draws its
+target batches from one stream, a sampler seeded by (seed, iteration): the target phase takes the first K1, the
+source phase's relabelling the next ones, so a resumed run sees the batches an uninterrupted one would have (a
+run resumed in the source phase skips the target phase's K1 first).
 """
 
 from __future__ import annotations
@@ -307,7 +308,11 @@ def train_coworld(job: Any, *, device: torch.device, resumed: bool, progress: bo
                 _show(bar, progress_state, cfg.iterations)
                 seed = config.seed + 1000 * (iteration + 1)
                 stop_prefetch(agent.target_batches)
-                batches = iter(dataset.sampler(config.train.batch_size, config.train.seq_len, seed=seed))
+                batches = dataset.sampler(config.train.batch_size, config.train.seq_len, seed=seed)
+                if progress_state["phase"] == "source":
+                    # resumed inside the source phase (it restarts from its beginning): its relabelling batches
+                    # follow the target phase's K1 in the stream, as in an uninterrupted run
+                    batches.skip(cfg.target_updates)
                 # laid out for the world models, with the source model's pass for the target phase's own batches;
                 # made ahead on a background thread where train.prefetch is on (the same batches either way)
                 aligned = cfg.target_updates if progress_state["phase"] == "target" else 0

@@ -73,6 +73,13 @@ class SequenceSampler:
     def __next__(self) -> dict[str, np.ndarray]:
         return self.gather(self.sample_starts(self._generator()))
 
+    def skip(self, batches: int) -> None:
+        """Draw and drop the window starts of the next ``batches`` batches without reading their frames: the
+        iterator then yields what it would have yielded after that many ``next`` calls."""
+        rng = self._generator()
+        for _ in range(batches):
+            self.sample_starts(rng)
+
     def sample_starts(self, rng: np.random.Generator) -> np.ndarray:
         """(B,) int64 first steps of B windows, uniform over the allowed starts."""
         pick = rng.integers(0, self._cum[-1], size=self.batch_size)

@@ -10,14 +10,18 @@ from) and recomputes the term from the paper's formula, written out here rather 
 from __future__ import annotations
 
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import pytest
 import torch
 from torch import Tensor
 
-from coworld.agents.coworld import CoWorld
+from coworld.agents import coworld as coworld_module
+from coworld.agents.coworld import ALIGN_SOURCE, CoWorld
 from coworld.config import make_config
+from coworld.data import open_dataset
+from coworld.training.train import run_job
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -270,3 +274,140 @@ def test_actor_warmup_holds_the_actor_and_critic_of_both_agents(target_batch) ->
             assert (f"{side}/coworld/maxmin_active" in metrics) == (side == "target" and not warming)
             assert f"{side}/wm/loss" in metrics
         assert learner.updates == 3
+
+
+SCHEDULE = [
+    "device=cpu",
+    "train.prefill=50",
+    "train.pretrain_updates=1",
+    "train.train_every=5",
+    "train.eval_episodes=1",
+    "train.prefetch=false",  # batches made as the updates draw them, so the record below is in draw order
+    "coworld.pretrain_steps=60",
+    "coworld.target_updates=2",
+    "coworld.source_updates=3",
+    "coworld.eval_every=100",  # the last iteration's evaluation only
+    *COEFFICIENTS,
+]
+K1, K2 = 2, 3
+
+
+def _fingerprint(agent: Any) -> float:
+    """A number that changes when any weight of the agent's world model or actor-critic changes."""
+    modules = (agent.world_model, agent.actor_critic)
+    return float(sum(p.detach().double().sum() * (i + 1) for m in modules for i, p in enumerate(m.parameters())))
+
+
+def _record_schedule(monkeypatch: pytest.MonkeyPatch, crash_at_first_relabelled_update: bool = False) -> list[Any]:
+    """Patch CoWorld's two updates and Eq. 4's relabelling to append, in call order, ``(kind, detail, source and
+    target fingerprints before and after)`` for each update and ``("relabel", target_reward, k)`` for each
+    relabelling."""
+    events: list[Any] = []
+    train_target, train_source = CoWorld.train_target, CoWorld.train_source
+    relabel_reward = coworld_module.relabel_reward
+
+    def target(self: CoWorld, batch: Any) -> Any:
+        before = (_fingerprint(self.source), _fingerprint(self.target))
+        out = train_target(self, batch)
+        aligned = ALIGN_SOURCE in batch
+        events.append(
+            (
+                "target",
+                (aligned, batch["reward"].clone()),
+                before,
+                (_fingerprint(self.source), _fingerprint(self.target)),
+            )
+        )
+        return out
+
+    def source(self: CoWorld, batch: Any) -> Any:
+        if crash_at_first_relabelled_update and self.target_batches is not None:
+            raise RuntimeError("simulated crash")
+        before = (_fingerprint(self.source), _fingerprint(self.target))
+        out = train_source(self, batch)
+        events.append(
+            ("source", self.target_batches is not None, before, (_fingerprint(self.source), _fingerprint(self.target)))
+        )
+        return out
+
+    def relabel(pred: Tensor, reward: Tensor, k: float) -> Tensor:
+        events.append(("relabel", reward.detach().clone(), k))
+        return relabel_reward(pred, reward, k)
+
+    monkeypatch.setattr(CoWorld, "train_target", target)
+    monkeypatch.setattr(CoWorld, "train_source", source)
+    monkeypatch.setattr(coworld_module, "relabel_reward", relabel)
+    return events
+
+
+def _stream(dataset: Any, config: Any, iteration: int, n: int) -> list[Tensor]:
+    """The rewards of the first ``n`` batches of an iteration's target stream: the sampler seeded by (seed,
+    iteration) as the schedule seeds it."""
+    sampler = dataset.sampler(config.train.batch_size, config.train.seq_len, seed=config.seed + 1000 * (iteration + 1))
+    return [torch.as_tensor(next(sampler)["reward"]) for _ in range(n)]
+
+
+def test_algorithm_1_freezes_each_agent_while_the_other_learns_and_feeds_each_phase_its_batches(
+    tmp_path: Path, toy_dataset_writer, coworld_toy_job, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Algorithm 1 on the toy pair, 2 iterations of K1 = 2 target and K2 = 3 source updates after the source
+    pretraining. Pinned: the order (source updates alone, then K1 target, K2 source per iteration); nothing moves
+    between updates; a target update moves the target agent only and a source update the source agent only; the
+    pretraining relabels nothing; each target update's batch is the iteration's stream's next one and carries the
+    source model's pass; each source update relabels exactly one target batch, with ``k``, the stream's next one
+    after the target phase's (so the two phases never share a batch)."""
+    dataset = toy_dataset_writer(tmp_path / "target.h5", "toy_reach_shifted", episodes=3)
+    job = coworld_toy_job(dataset, tmp_path / "run", [*SCHEDULE, "coworld.iterations=2"])
+    events = _record_schedule(monkeypatch)
+    assert run_job(job, progress=False)["iterations"] == 2
+
+    updates = [e for e in events if e[0] != "relabel"]
+    kinds = "".join(e[0][0] for e in updates)
+    pretrain = kinds.index("t")
+    assert pretrain > 0 and kinds == "s" * pretrain + ("t" * K1 + "s" * K2) * 2
+    for previous, update in zip(updates, updates[1:], strict=False):
+        assert update[2] == previous[3]  # nothing changes either agent between two updates
+    for kind, _, (source_before, target_before), (source_after, target_after) in updates:
+        if kind == "target":
+            assert source_after == source_before and target_after != target_before
+        else:
+            assert target_after == target_before and source_after != source_before
+    assert not any(e[1] for e in updates[:pretrain])  # no target batches while the source agent pretrains
+    assert all(e[1] for e in updates[pretrain:] if e[0] == "source")
+
+    relabelled = [e for e in events if e[0] == "relabel"]
+    assert len(relabelled) == 2 * K2 and all(e[2] == K for e in relabelled)
+    with open_dataset(dataset) as data:
+        for iteration in range(2):
+            stream = _stream(data, job.config, iteration, K1 + K2)
+            targets = updates[pretrain + iteration * (K1 + K2) :][:K1]
+            assert all(aligned for _, (aligned, _), _, _ in targets)
+            for (_, (_, reward), _, _), want in zip(targets, stream[:K1], strict=True):
+                assert torch.equal(reward, want)
+            for (_, reward, _), want in zip(relabelled[iteration * K2 :][:K2], stream[K1:], strict=True):
+                assert torch.equal(reward, want)
+
+
+def test_a_source_phase_resumed_after_a_crash_relabels_the_batches_an_uninterrupted_one_would(
+    tmp_path: Path, toy_dataset_writer, coworld_toy_job, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A run killed at its first source update after the target phase resumes in the source phase; its relabelling
+    batches continue the iteration's stream after the target phase's K1 batches, as an uninterrupted run's do,
+    rather than starting the stream again (and relabelling the batches the target phase trained on)."""
+    dataset = toy_dataset_writer(tmp_path / "target.h5", "toy_reach_shifted", episodes=3)
+    job = coworld_toy_job(dataset, tmp_path / "run", [*SCHEDULE, "coworld.iterations=1"])
+    _record_schedule(monkeypatch, crash_at_first_relabelled_update=True)
+    with pytest.raises(RuntimeError, match="simulated crash"):
+        run_job(job, progress=False)
+    assert torch.load(tmp_path / "run" / "checkpoint.pt", weights_only=True)["progress"]["phase"] == "source"
+
+    monkeypatch.undo()
+    events = _record_schedule(monkeypatch)
+    run_job(job, progress=False)
+    assert [e[0] for e in events if e[0] != "relabel"] == ["source"] * K2
+    relabelled = [e[1] for e in events if e[0] == "relabel"]
+    with open_dataset(dataset) as data:
+        stream = _stream(data, job.config, 0, K1 + K2)
+    assert len(relabelled) == K2
+    for reward, want in zip(relabelled, stream[K1:], strict=True):
+        assert torch.equal(reward, want)

@@ -104,6 +104,24 @@ def test_the_seed_decides_the_windows(dataset_path: Path) -> None:
     assert not np.array_equal(first[0], other)
 
 
+@pytest.mark.parametrize("mode", ["ram", "stream"])
+def test_skipping_batches_continues_the_stream_where_drawing_them_would(
+    dataset_path: Path, mode: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``skip(n)`` leaves the sampler where ``n`` draws would, without reading a frame (CoWorld's resumed source
+    phase skips its target phase's batches this way)."""
+    with open_dataset(dataset_path) as data:
+        drawn = data.sampler(B, L, seed=3, mode=mode)
+        expected = [next(drawn) for _ in range(5)][3:]
+        skipped = data.sampler(B, L, seed=3, mode=mode)
+        with monkeypatch.context() as patch:
+            patch.setattr(SequenceSampler, "gather", lambda *_: pytest.fail("skip read frames"))
+            skipped.skip(3)
+        for want in expected:
+            got = next(skipped)
+            assert all(np.array_equal(got[key], want[key]) for key in want)
+
+
 def test_auto_mode_streams_when_the_frames_do_not_fit(dataset_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     import coworld.data.reader as reader
 
