@@ -138,3 +138,19 @@ def test_overriding_another_presets_switch_leaves_the_paper_preset_alone() -> No
     make_config("cpu", ["actor_critic.actor_dist=normal", "world_model.unimix=0.05"])
     paper = to_dict(make_config("paper"))
     assert {dotted: _value(paper, dotted) for dotted in PINNED} == PINNED
+
+
+ANNOUNCED = {"world_model.gru_bias": True, "world_model.gru_eps": 1e-3}
+"""Switches the paper preset takes with the plain reference model (DreamerV2's GRU cell: a bias, LayerNorm epsilon
+1e-3); pinned from the day the keys exist."""
+
+
+@pytest.mark.parametrize("dotted", sorted(ANNOUNCED))
+def test_the_paper_preset_keeps_dreamerv2s_gru_once_the_switch_exists(dotted: str) -> None:
+    """As :func:`test_the_paper_preset_keeps_table_3_and_dreamerv2s_design`, for a key that may not exist yet."""
+    try:
+        value = _value(to_dict(make_config("paper")), dotted)
+    except KeyError:
+        pytest.skip(f"{dotted} is not a config key yet")
+    want = ANNOUNCED[dotted]
+    assert type(value) is type(want) and value == want, f"paper preset {dotted}={value!r}, DreamerV2: {want!r}"
