@@ -141,8 +141,8 @@ def test_overriding_another_presets_switch_leaves_the_paper_preset_alone() -> No
 
 
 ANNOUNCED = {"world_model.gru_bias": True, "world_model.gru_eps": 1e-3}
-"""Switches the paper preset takes with the plain reference model (DreamerV2's GRU cell: a bias, LayerNorm epsilon
-1e-3); pinned from the day the keys exist."""
+"""The GRU cell's switches that the plain reference model brings, with the values the paper preset is to take
+(DreamerV2's cell); pinned from the day the keys exist."""
 
 
 @pytest.mark.parametrize("dotted", sorted(ANNOUNCED))
