@@ -13,12 +13,13 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 import torch
 from torch import Tensor
 
 from coworld.agents import coworld as coworld_module
-from coworld.agents.coworld import ALIGN_SOURCE, CoWorld
+from coworld.agents.coworld import ALIGN_SOURCE, CoWorld, TargetBatches
 from coworld.config import make_config
 from coworld.data import open_dataset
 from coworld.training.train import run_job
@@ -411,3 +412,104 @@ def test_a_source_phase_resumed_after_a_crash_relabels_the_batches_an_uninterrup
     assert len(relabelled) == K2
     for reward, want in zip(relabelled, stream[K1:], strict=True):
         assert torch.equal(reward, want)
+
+
+# -- acting, checkpoints, the source learner ---------------------------------------------------------------------
+
+
+def _observations(n: int = 2) -> np.ndarray:
+    return np.random.default_rng(0).integers(0, 256, (n, 64, 64, 3), dtype=np.uint8)
+
+
+def _act(policy: Callable[..., Any], *args: Any, **kwargs: Any) -> tuple[np.ndarray, Any]:
+    """``policy(*args, **kwargs)`` with torch's default generator seeded: acting draws the latent samples (and in
+    'train' mode the actions) from it."""
+    torch.manual_seed(7)
+    return policy(*args, **kwargs)
+
+
+def _same_actions(a: tuple[np.ndarray, Any], b: tuple[np.ndarray, Any]) -> bool:
+    return bool(np.array_equal(a[0], b[0]))
+
+
+def test_coworld_acts_with_the_target_agent_in_eval_mode_by_default() -> None:
+    """CoWorld's policy is the target agent's (it acts in the target domain), in 'eval' mode unless told,
+    passing the state and the rows' ``is_first`` through; its value is the target critic's."""
+    agent = _agent()
+    obs = _observations()
+    first = _act(agent.policy, obs)
+    assert _same_actions(first, _act(agent.target.policy, obs, None, "eval"))
+    assert not _same_actions(first, _act(agent.target.policy, obs, None, "train"))
+    assert not _same_actions(first, _act(agent.source.policy, obs, None, "eval"))
+    is_first = np.array([True, False])
+    later = _act(agent.policy, obs, first[1], "eval", is_first=is_first)
+    assert _same_actions(later, _act(agent.target.policy, obs, first[1], "eval", is_first=is_first))
+    assert not np.array_equal(later[0][1], _act(agent.target.policy, obs, None, "eval")[0][1])  # row 1 kept its state
+    assert not np.array_equal(later[0][0], _act(agent.target.policy, obs, first[1], "eval")[0][0])  # row 0 restarted
+    sampled = _act(agent.policy, obs, None, "train")
+    assert _same_actions(sampled, _act(agent.target.policy, obs, None, "train"))
+    assert not _same_actions(sampled, first)
+    np.testing.assert_array_equal(agent.value(later[1]), agent.target.value(later[1]))
+
+
+def test_the_source_learner_acts_evaluates_and_trains_as_the_source_agent(target_batch) -> None:
+    """What the online trainer drives in the source phases: the source agent's policy (keywords included) and
+    value, and CoWorld's source update with its metrics' ``source/`` prefix taken off (the trainer adds its own)."""
+    agent = _agent("coworld.reward_relabel=false")
+    learner = coworld_module._SourceLearner(agent)
+    obs, is_first = _observations(), np.array([False, True])
+    first = _act(learner.policy, obs, None, mode="eval")
+    assert _same_actions(first, _act(agent.source.policy, obs, None, mode="eval"))
+    assert not _same_actions(first, _act(agent.source.policy, obs, None, mode="train"))
+    later = _act(learner.policy, obs, first[1], mode="eval", is_first=is_first)
+    assert _same_actions(later, _act(agent.source.policy, obs, first[1], mode="eval", is_first=is_first))
+    assert not _same_actions(later, _act(agent.source.policy, obs, first[1], mode="eval"))
+    np.testing.assert_array_equal(learner.value(later[1]), agent.source.value(later[1]))
+    assert not np.array_equal(learner.value(later[1]), agent.target.value(later[1]))
+    metrics = learner.train(target_batch(b=2, t=3))
+    assert "wm/loss" in metrics and "critic/loss" in metrics
+    assert not [key for key in metrics if key.startswith("source/")]
+    assert agent.source.updates == 1 and agent.target.updates == 0
+
+
+def test_a_coworld_state_dict_round_trips_both_agents() -> None:
+    """``state_dict``/``load_state_dict`` carry the target and the source agent, each to its own side."""
+    saved = _agent()
+    torch.manual_seed(1)
+    other = CoWorld(config=saved.config, action_size=2, device="cpu")
+    state = saved.state_dict()
+    assert set(state) == {"target", "source"}
+    other.load_state_dict(state)
+    for side in ("target", "source"):
+        want, have = getattr(saved, side), getattr(other, side)
+        for module in ("world_model", "actor_critic"):
+            assert _unchanged(_snapshot(getattr(want, module)), getattr(have, module)), (side, module)
+
+
+def test_target_batches_carry_no_source_pass_when_alignment_is_off(target_batch) -> None:
+    """With ``coworld.align=false`` no batch is made with the source model's pass, however many were asked for."""
+    agent = _agent("coworld.align=false")
+    made = TargetBatches(agent, aligned=2, seed=0)
+    assert not any(ALIGN_SOURCE in made(target_batch(b=2, t=3)) for _ in range(3))
+
+
+def test_both_updates_imagine_from_the_batchs_true_terminal_flags(target_batch) -> None:
+    """The target and the source actor-critic steps start imagination with the batch's ``is_terminal`` (its true
+    continuation), not the predicted one."""
+    agent = _agent("coworld.reward_relabel=false")
+    seen: dict[str, Any] = {}
+    for side in ("target", "source"):
+        learner = getattr(agent, side)
+        original = learner.train_actor_critic
+
+        def spy(post: Any, *args: Any, _side: str = side, _original: Any = original, **kwargs: Any) -> Any:
+            seen[_side] = kwargs.get("is_terminal")
+            return _original(post, *args, **kwargs)
+
+        learner.train_actor_critic = spy
+    batch = target_batch(b=2, t=3)
+    batch["is_terminal"][1, 2] = True
+    agent.train_target(batch)
+    agent.train_source(batch)
+    for side in ("target", "source"):
+        assert seen[side] is not None and torch.equal(torch.as_tensor(seen[side]).cpu(), batch["is_terminal"]), side

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import re
 
 import pytest
 import torch
@@ -280,3 +281,28 @@ def test_source_reward_loss_of_a_twohot_head_is_its_cross_entropy_of_the_label()
     assert logits.grad is not None and float(logits.grad.abs().sum()) > 0
     with pytest.raises(ValueError):
         source_reward_loss_on_target(head, torch.zeros(2, 4))
+
+
+def test_shape_checks_name_every_tensor_and_refuse_broadcasting() -> None:
+    """Each equation refuses inputs that would broadcast (a silent wrong answer) and names every input and its
+    shape, so the message says which tensor is off; a flat embedding names the shape it needs."""
+    e = torch.zeros(2, 3, 4)
+    with pytest.raises(ValueError, match=r"source_embed=\(2, 3, 4\), target_embed=\(1, 3, 4\)"):
+        embedding_alignment_loss(e, e[:1])
+    with pytest.raises(ValueError, match=r"source_embed=\(1, 3, 4\), target_embed=\(2, 3, 4\)"):
+        embedding_alignment_loss(e[:1], e)
+    with pytest.raises(ValueError, match=r"^source_embed must have shape \(B, T, E\), got \(3, 4\)$"):
+        embedding_alignment_loss(e[0], e[0])
+    v = torch.zeros(3, 4)
+    for fn in (max_min_active, value_regulariser):
+        with pytest.raises(ValueError, match=r"target_value=\(3, 4\), source_value=\(1, 4\)"):
+            fn(v, v[:1], zeta=1.0)
+        with pytest.raises(ValueError, match=r"target_value=\(1, 4\), source_value=\(3, 4\)"):
+            fn(v[:1], v, zeta=1.0)
+    names = ("value", "target", "source_value")
+    for i in range(3):
+        args = [v, v, v]
+        args[i] = v[:1]
+        shapes = ", ".join(f"{name}={(1, 4) if j == i else (3, 4)}" for j, name in enumerate(names))
+        with pytest.raises(ValueError, match=re.escape(f"got {shapes}")):
+            regularised_critic_loss(*args, alpha=0.2, zeta=1.0)
