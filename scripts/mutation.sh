@@ -21,6 +21,7 @@ site=$work/site
 MUTATE=(coworld/losses/coworld.py coworld/agents/coworld.py coworld/losses/dreamer.py)
 TESTS=(
   tests/losses/test_coworld_losses.py
+  tests/losses/test_dreamer_loss_contracts.py
   tests/models/test_dreamer_losses.py
   tests/agents/test_coworld_wiring.py
   tests/agents/test_coworld_schedule.py

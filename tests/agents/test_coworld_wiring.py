@@ -9,6 +9,7 @@ from) and recomputes the term from the paper's formula, written out here rather 
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -22,6 +23,7 @@ from coworld.agents import coworld as coworld_module
 from coworld.agents.coworld import ALIGN_SOURCE, CoWorld, TargetBatches
 from coworld.config import make_config
 from coworld.data import open_dataset
+from coworld.errors import ConfigError
 from coworld.training.train import run_job
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -513,3 +515,15 @@ def test_both_updates_imagine_from_the_batchs_true_terminal_flags(target_batch) 
     agent.train_source(batch)
     for side in ("target", "source"):
         assert seen[side] is not None and torch.equal(torch.as_tensor(seen[side]).cpu(), batch["is_terminal"]), side
+
+
+def test_coworld_builds_both_agents_on_the_device_it_is_given_and_refuses_an_unknown_alignment() -> None:
+    """The ``device`` argument, not ``config.device``, places both agents (a config saved on a GPU machine resumes
+    on a CPU), and CoWorld's device is theirs; an ``align_on`` that slipped past the config's check (a config built
+    by hand) is refused naming the choices."""
+    config = make_config("tiny", ["device=cuda"])
+    agent = CoWorld(config=config, action_size=2, device="cpu")
+    assert agent.device == agent.target.device == agent.source.device == torch.device("cpu")
+    bad = dataclasses.replace(config, coworld=dataclasses.replace(config.coworld, align_on="encoder"))
+    with pytest.raises(ConfigError, match=r"^coworld.align_on must be one of latent, embedding, not 'encoder'$"):
+        CoWorld(config=bad, action_size=2, device="cpu")
