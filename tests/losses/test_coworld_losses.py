@@ -293,6 +293,9 @@ def test_shape_checks_name_every_tensor_and_refuse_broadcasting() -> None:
         embedding_alignment_loss(e[:1], e)
     with pytest.raises(ValueError, match=r"^source_embed must have shape \(B, T, E\), got \(3, 4\)$"):
         embedding_alignment_loss(e[0], e[0])
+    logits = torch.zeros(2, 3, 4, 5)
+    with pytest.raises(ValueError, match=r"^source_logits must have shape \(B, T, S, K\), got \(3, 4, 5\)$"):
+        alignment_loss(logits[0], logits[0])
     v = torch.zeros(3, 4)
     for fn in (max_min_active, value_regulariser):
         with pytest.raises(ValueError, match=r"target_value=\(3, 4\), source_value=\(1, 4\)"):
