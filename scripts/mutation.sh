@@ -1,16 +1,17 @@
 #!/usr/bin/env bash
 # Mutation testing of CoWorld's core (issue 52; docs/testing.md): mutmut mutates coworld/losses/coworld.py,
 # coworld/agents/coworld.py and coworld/losses/dreamer.py and runs, for each mutant, the fast tests that reach the
-# mutated function. Run it after scripts/install.sh; it takes about 25 minutes on two busy CPU cores.
+# mutated function. Run it after scripts/install.sh; it takes about 10 minutes on two busy CPU cores.
 #
-#   bash scripts/mutation.sh            # run (resumes: mutants already judged are not run again)
+#   bash scripts/mutation.sh            # run, in a fresh copy of the checkout
 #   bash scripts/mutation.sh results    # list the mutants that survived
 #   bash scripts/mutation.sh show NAME  # show one mutant's diff
 #
-# It works in a copy of the tree, .mutation/tree, so the checkout is never mutated. mutmut comes from the dev extras;
-# where the venv lacks it, it is installed into .mutation/site (never into the venv) and appended to the path, so
-# the venv's own pytest and plugins are the ones that run. Environment: PYTHON (default .venv/bin/python),
-# MUTATION_JOBS (parallel mutants, default 1), MUTATION_FRESH=1 (start again from a new copy).
+# It works in a copy of the tree, .mutation/tree, so the checkout is never mutated. Where the venv has no mutmut, it is
+# installed into .mutation/site (never into the venv) and appended to the path, so the venv's own pytest and plugins
+# are the ones that run. Environment: PYTHON (default .venv/bin/python),
+# MUTATION_JOBS (parallel mutants, default 1), MUTATION_RESUME=1 (go on with the last copy, skipping judged mutants),
+# MUTATION_ALL=1 (train_coworld's loop too, see below).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 root=$PWD
@@ -33,7 +34,9 @@ if ! "$py" -c "import mutmut" 2>/dev/null && ! PYTHONPATH=$site "$py" -c "import
 fi
 mutmut=("$py" -c "import sys; sys.path.append('$site'); from mutmut.__main__ import cli; sys.argv[0] = 'mutmut'; cli()")
 
-[ "${MUTATION_FRESH:-0}" = 1 ] && rm -rf "$tree"
+# a run starts from a fresh copy of the checkout (MUTATION_RESUME=1 keeps the last copy and its results); results
+# and show read the last run's copy
+if [ "${1:-run}" = run ] && [ "${MUTATION_RESUME:-0}" != 1 ]; then rm -rf "$tree"; fi
 if [ ! -d "$tree" ]; then
   mkdir -p "$tree"
   cp -r coworld tests pyproject.toml "$tree"/
