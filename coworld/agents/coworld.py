@@ -86,7 +86,7 @@ class CoWorld:
     def train_target(self, batch: Mapping[str, np.ndarray]) -> dict[str, float]:
         """One target world-model step with Eq. 3 and one target actor-critic step with Eq. 6."""
         cfg = self.config.coworld
-        batch_t = self.target.prepare(batch)  # the images' phases once, for both world models
+        batch_t = self.target.prepare(batch)  # laid out once for both world models
         extra = None
         if cfg.align:
             source = batch_t.get(ALIGN_SOURCE)
@@ -133,11 +133,11 @@ class CoWorld:
         model without gradient: its posterior's log-probabilities ``(B, T, S, K)`` (``align_on='latent'``; the
         latent samples' noise drawn from ``generator``, torch's default if None) or its embeddings ``(B, T, E)``
         (``'embedding'``)."""
-        world_model = self.source.world_model
+        path = self.source.model_path
         with torch.no_grad():
             if self.config.coworld.align_on == "embedding":
-                return world_model.embed(batch)
-            post, _, _ = world_model.observe(batch, generator=generator)
+                return path.embed(batch)
+            post, _, _ = path.observe(batch, generator=generator)
             return post["logits"]
 
     # -- the source agent's update (Alg. 1 lines 12-16) -----------------------------------------------------------
@@ -149,7 +149,7 @@ class CoWorld:
             target_batch = self.source.to_batch(next(self.target_batches))
 
             def extra(_: dict[str, Tensor], __: dict[str, Any]) -> dict[str, Tensor]:
-                post, _, _ = self.source.world_model.observe(target_batch)
+                post, _, _ = self.source.model_path.observe(target_batch)
                 head = self.source.world_model.reward_head(self.source.world_model.features(post))
                 label = relabel_reward(head.mean, target_batch["reward"].float(), cfg.k)
                 return {"relabel": source_reward_loss_on_target(head, label).mean()}

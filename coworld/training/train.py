@@ -21,6 +21,8 @@ from coworld.errors import CoworldError, DatasetError
 ALGOS = ("coworld", "dreamerv2", "curl", "curl-cql", "drq-bc", "dreamerv2-penalty", "dreamerv2-finetune")
 MODEL_FREE = ("curl", "curl-cql", "drq-bc")
 NEEDS_SOURCE = ("coworld", "dreamerv2-finetune")
+MODEL_BASED = ("coworld", "dreamerv2", "dreamerv2-penalty", "dreamerv2-finetune")
+"""The algorithms that train DreamerV2's world model (and read ``train.backend``)."""
 """Algorithms that also learn online in a source task (``--source``); the others learn from the target dataset
 alone."""
 
@@ -116,6 +118,8 @@ def check_job(
         )
     run_dir = Path(logdir) if logdir is not None else default_logdir(algo, source, target, config.seed)
     check_schedule(algo, config)
+    if algo in MODEL_BASED:
+        check_backend(config, target_spec.action_size)
     job = TrainJob(algo, source if algo in NEEDS_SOURCE else None, target, path, run_dir, config, preset)
     resume = check_run_dir(run_dir, config, job.info())
     warnings += preset_warnings(preset, config.device)
@@ -135,6 +139,18 @@ def check_schedule(algo: str, config: Config) -> None:
 
 IMAGE_SHAPE = (64, 64, 3)
 """The frames every model here takes."""
+
+
+def check_backend(config: Config, action_size: int) -> None:
+    """``train.backend``'s choice for the world model ``config`` builds, made before anything is written (a refused
+    ``cpu`` raises ConfigError with one line)."""
+    from coworld import backends
+    from coworld.agents.dreamerv2 import resolve_precision
+    from coworld.training.run import resolve_device
+
+    device = resolve_device(config.device)
+    autocast = resolve_precision(config.precision, device) is not None
+    backends.check_config(config, action_size, IMAGE_SHAPE, device, autocast)
 
 
 def check_dataset(path: Path, task: str, action_size: int) -> bool:
