@@ -194,8 +194,9 @@ class DreamerV2:
         return out
 
     def prepare(self, batch: Mapping[str, np.ndarray | Tensor]) -> dict[str, Tensor]:
-        """:meth:`to_batch` and the model path's ``prepare`` (:mod:`coworld.backends`): the batch as the update reads it, made with no weight (so :class:`~coworld.data.prefetch.Prefetcher` can make
-        the next one during an update). :meth:`train` takes batches either way."""
+        """:meth:`to_batch` and the model path's ``prepare`` (:mod:`coworld.backends`): the batch as the update
+        reads it, made with no weight (so :class:`~coworld.data.prefetch.Prefetcher` can make the next one during an
+        update). :meth:`train` takes batches either way."""
         return self.model_path.prepare(self.to_batch(batch))
 
     def train(self, batch: Mapping[str, np.ndarray | Tensor]) -> dict[str, float]:
