@@ -248,6 +248,12 @@ def load_result(run_dir: Path) -> RunResult:
     final = std = success = estimate = true = None
     episodes = None
     result = _json_object(run_dir / "eval.json", problems)
+    scored = (
+        result.get("extra", {}).get("algo") if result is not None and isinstance(result.get("extra"), dict) else None
+    )
+    if scored is not None and scored != info["algo"]:  # the evaluation of a checkpoint copied in from another run
+        problems.append(f"{run_dir / 'eval.json'}: an evaluation of a {scored} agent, but the run is {info['algo']}")
+        result = None
     if result is not None:
         try:
             returns = [float(r) for r in result["returns"]]
