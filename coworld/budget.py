@@ -50,6 +50,7 @@ def _dreamer(config: Config, algo: str) -> list[Term]:
     feat = wm.deter + latent
     embed = wm.cnn_depth * 32 * 2 * 2  # the encoder's last feature map, flattened
     agents = 2 if algo == "coworld" else 1
+    batch_key = "train.batch_size" if train.batch_size >= train.seq_len else "train.seq_len"
     terms = [
         Term(agents * TRAINED * 3 * wm.deter * (wm.hidden + wm.deter), "world_model.deter"),  # the GRU cell
         Term(agents * TRAINED * (latent + embed + wm.deter) * wm.hidden, "world_model.hidden"),
@@ -58,7 +59,7 @@ def _dreamer(config: Config, algo: str) -> list[Term]:
         Term(agents * TRAINED * 2 * (feat + wm.mlp_layers * wm.mlp_units) * wm.mlp_units, "world_model.mlp_units"),
         Term(agents * TRAINED * 3 * (feat + ac.layers * ac.units) * ac.units, "actor_critic.units"),
         # a batch's frames and the convolutions' activations kept for the backward pass
-        Term(FLOAT * train.batch_size * train.seq_len * (IMAGE + 2 * 1529 * wm.cnn_depth), "train.batch_size"),
+        Term(FLOAT * train.batch_size * train.seq_len * (IMAGE + 2 * 1529 * wm.cnn_depth), batch_key),
         # imagination: every start state rolled out for the horizon
         Term(FLOAT * train.batch_size * train.seq_len * ac.horizon * (feat + ac.units), "actor_critic.horizon"),
     ]

@@ -587,6 +587,12 @@ def validate(config: Config) -> None:
     for dotted, value, constraint in _constrained_values(config):
         if not constraint.contains(value):
             raise ConfigError(f"config key {dotted}={value!r} is out of range: it must be {constraint}")
+    ac = config.actor_critic
+    if ac.actor_min_std > ac.actor_max_std:
+        raise ConfigError(
+            f"config keys actor_critic.actor_min_std={ac.actor_min_std} and actor_critic.actor_max_std="
+            f"{ac.actor_max_std}: the least spread is above the most; swap them"
+        )
     curl = config.curl
     padded = 64 + 2 * curl.pad  # frames are 64 x 64 (the image size every model here takes)
     if curl.crop > padded:

@@ -211,16 +211,19 @@ def _is_step(value: Any) -> bool:
 
 
 def normalized(task: str, value: float | None) -> float | None:
-    """(value - random_return) / (reference_return - random_return) of ``task``; None when not defined."""
+    """``100 * (value - random_return) / (reference_return - random_return)`` of ``task``, the scale ``coworld
+    eval`` and ``coworld dataset info`` print (:func:`coworld.data.reader.normalized_score`); None when not
+    defined."""
+    from coworld.data.reader import normalized_score
+
     if value is None:
         return None
     try:
         spec = envs.task_spec(task)
     except UnknownTaskError:
         return None
-    if spec.reference_return is None or spec.random_return is None or spec.reference_return == spec.random_return:
-        return None
-    return (value - spec.random_return) / (spec.reference_return - spec.random_return)
+    score = normalized_score(value, {"random_return": spec.random_return, "reference_return": spec.reference_return})
+    return None if score is None else float(score)
 
 
 def _mean(values: Any) -> float | None:

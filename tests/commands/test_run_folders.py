@@ -11,29 +11,13 @@ from pathlib import Path
 import pytest
 from click.testing import CliRunner
 
-from coworld.agents.factory import make_agent
 from coworld.cli import main
-from coworld.config import make_config, to_dict
 from coworld.report import write_report
 from coworld.training.checkpoint import save_checkpoint
 from coworld.training.run import prepare_run_dir
 from coworld.training.train import CHECKPOINT_KINDS, check_job
 
 TARGET = "toy_reach_shifted"
-
-
-def make_run(folder: Path, algo: str, dataset: Path, *, checkpoint_of: str | None = None, task: str = TARGET) -> Path:
-    """A run folder of ``algo`` as `coworld train` describes it, holding an untrained checkpoint of
-    ``checkpoint_of`` (default: ``algo``) trained on ``task``."""
-    config = make_config("tiny", ["device=cpu"])
-    source = "toy_reach" if algo in ("coworld", "dreamerv2-finetune") else None
-    info = {"algo": algo, "source": source, "target": TARGET, "dataset": str(dataset), "preset": "tiny"}
-    prepare_run_dir(folder, config, info)
-    made = checkpoint_of or algo
-    agent = make_agent(made, config=config, action_size=2, device="cpu")
-    state = {"kind": CHECKPOINT_KINDS[made], "task": task, "config": to_dict(config), "agent": agent.state_dict()}
-    save_checkpoint(folder / "checkpoint.pt", state)
-    return folder
 
 
 def digest(folder: Path) -> dict[str, str]:
@@ -62,7 +46,7 @@ def one_line(code: int, output: str, *needles: str) -> str:
         ("dreamerv2-finetune", "dreamerv2"),
     ],
 )
-def test_eval_refuses_a_checkpoint_of_another_algorithm(tmp_path, toy_dataset, folder_algo, checkpoint_algo):
+def test_eval_refuses_a_checkpoint_of_another_algorithm(tmp_path, toy_dataset, make_run, folder_algo, checkpoint_algo):
     run = make_run(tmp_path / "run", folder_algo, toy_dataset, checkpoint_of=checkpoint_algo)
     before = digest(run)
     code, out = cli("eval", "--ckpt", str(run), "--episodes", "1", "--device", "cpu")
@@ -70,7 +54,7 @@ def test_eval_refuses_a_checkpoint_of_another_algorithm(tmp_path, toy_dataset, f
     assert digest(run) == before  # no eval.json labelled with the folder's algorithm
 
 
-def test_eval_refuses_a_checkpoint_of_another_task_as_a_real_process(tmp_path, toy_dataset, processes):
+def test_eval_refuses_a_checkpoint_of_another_task_as_a_real_process(tmp_path, toy_dataset, make_run, processes):
     run = make_run(tmp_path / "run", "dreamerv2-penalty", toy_dataset, task="toy_reach_centre")
     done = processes.run_cli("eval", "--ckpt", str(run), "--episodes", "1", "--device", "cpu")
     assert done.returncode == 2
@@ -79,7 +63,7 @@ def test_eval_refuses_a_checkpoint_of_another_task_as_a_real_process(tmp_path, t
     assert not (run / "eval.json").exists()
 
 
-def test_eval_refuses_a_checkpoint_of_other_settings(tmp_path, toy_dataset):
+def test_eval_refuses_a_checkpoint_of_other_settings(tmp_path, toy_dataset, make_run):
     run = make_run(tmp_path / "run", "dreamerv2", toy_dataset)
     state = json.loads((run / "config.json").read_text())
     state["world_model"]["deter"] = 32
@@ -88,7 +72,7 @@ def test_eval_refuses_a_checkpoint_of_other_settings(tmp_path, toy_dataset):
     one_line(code, out, "other settings", "world_model.deter: saved 64, now 32")
 
 
-def test_report_does_not_count_an_evaluation_of_another_algorithm(tmp_path, toy_dataset):
+def test_report_does_not_count_an_evaluation_of_another_algorithm(tmp_path, toy_dataset, make_run):
     run = make_run(tmp_path / "runs" / "a", "dreamerv2-finetune", toy_dataset)
     record = {"task": TARGET, "returns": [26.3], "lengths": [50], "extra": {"algo": "dreamerv2-penalty"}}
     (run / "eval.json").write_text(json.dumps(record))
@@ -120,7 +104,7 @@ def commands(run: Path, dataset: Path, tmp_path: Path) -> dict[str, list[str]]:
 
 @pytest.mark.parametrize("file", ["run.json", "config.json"])
 @pytest.mark.parametrize("damage", sorted(DAMAGED))
-def test_a_damaged_run_description_is_one_line_in_every_command(tmp_path, toy_dataset, file, damage):
+def test_a_damaged_run_description_is_one_line_in_every_command(tmp_path, toy_dataset, make_run, file, damage):
     if file == "config.json" and damage in ("no algo", "an unknown algo"):
         pytest.skip("a run.json damage")
     run = make_run(tmp_path / "run", "dreamerv2", toy_dataset)
@@ -134,7 +118,7 @@ def test_a_damaged_run_description_is_one_line_in_every_command(tmp_path, toy_da
         assert digest(run) == before and not (tmp_path / "p.png").exists(), name
 
 
-def test_a_damaged_run_json_as_a_real_process(tmp_path, toy_dataset, processes):
+def test_a_damaged_run_json_as_a_real_process(tmp_path, toy_dataset, make_run, processes):
     run = make_run(tmp_path / "run", "dreamerv2", toy_dataset)
     (run / "run.json").write_bytes(b"\xff\xfe")
     done = processes.run_cli("eval", "--ckpt", str(run), "--device", "cpu")
@@ -155,7 +139,7 @@ def test_a_checkpoint_missing_an_entry_is_refused_before_a_resume_writes_anythin
     assert digest(job.logdir) == before
 
 
-def test_eval_of_a_run_folder_without_a_checkpoint_says_so(tmp_path, toy_dataset):
+def test_eval_of_a_run_folder_without_a_checkpoint_says_so(tmp_path, toy_dataset, make_run):
     run = make_run(tmp_path / "run", "dreamerv2", toy_dataset)
     (run / "checkpoint.pt").unlink()
     code, out = cli("eval", "--ckpt", str(run), "--device", "cpu")
@@ -168,7 +152,7 @@ def test_eval_of_a_file_outside_a_run_folder_names_the_file(tmp_path, toy_datase
 
 
 @pytest.mark.parametrize("algo", ["dreamerv2-penalty", "dreamerv2-finetune"])
-def test_viz_predictions_looks_inside_the_model_based_variants(tmp_path, toy_dataset, algo):
+def test_viz_predictions_looks_inside_the_model_based_variants(tmp_path, toy_dataset, make_run, algo):
     run = make_run(tmp_path / "run", algo, toy_dataset)
     out = tmp_path / "p.png"
     code, text = cli("viz", "predictions", "--ckpt", str(run), "--out", str(out), "--device", "cpu", "--length", "8")
