@@ -147,6 +147,14 @@ def handling_signals() -> Iterator[None]:
         _state = _State()
 
 
+def release_held_signals() -> None:
+    """Deliver SIGINT and SIGTERM that were blocked while the command started again under tcmalloc
+    (:func:`coworld.allocator.exec_with_tcmalloc`); call it inside :func:`handling_signals`, where a pending one
+    raises :class:`Interrupted` like any other. Nothing happens where none was blocked."""
+    if threading.current_thread() is threading.main_thread():
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, SIGNALS)
+
+
 @contextmanager
 def safe_points() -> Iterator[None]:
     """Inside this block a signal only sets the flag that :func:`check` raises on (the block's loops must call it)."""
