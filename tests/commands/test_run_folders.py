@@ -158,3 +158,22 @@ def test_viz_predictions_looks_inside_the_model_based_variants(tmp_path, toy_dat
     code, text = cli("viz", "predictions", "--ckpt", str(run), "--out", str(out), "--device", "cpu", "--length", "8")
     assert code == 0, text
     assert f"({algo} run)" in text and out.exists()
+
+
+class _RunsCode:
+    def __reduce__(self):
+        import os
+
+        return (os.system, ("echo ran",))
+
+
+def test_a_refused_pickle_is_one_line_with_the_whole_reason(tmp_path, toy_dataset, make_run, processes):
+    import torch
+
+    run = make_run(tmp_path / "run", "dreamerv2", toy_dataset)
+    torch.save({"kind": "dreamerv2-offline", "agent": _RunsCode()}, run / "checkpoint.pt")
+    done = processes.run_cli("eval", "--ckpt", str(run), "--device", "cpu")
+    line = processes.last_word(done.stderr, "error: ")  # also: no torch warning before it
+    assert done.returncode == 2 and "ran" not in done.stdout
+    assert "unsupported GLOBAL posix.system whose module posix is blocked." in line, line
+    assert "Weights only load failed" not in line
