@@ -64,6 +64,7 @@ class _LazyGroup(click.Group):
         allocator.keep_freed_memory()  # glibc's malloc keeps freed tensors' memory (a no-op under tcmalloc)
         with interrupt.handling_signals():  # from the start: importing a command can take seconds
             try:
+                interrupt.release_held_signals()  # a Ctrl-C while the command started again under tcmalloc
                 return super().main(*args, **kwargs)
             except (interrupt.Interrupted, Exception) as err:
                 stop = interrupt.stop_for(err)

@@ -619,6 +619,12 @@ def validate(config: Config) -> None:
         if not constraint.contains(value):
             raise ConfigError(f"config key {dotted}={value!r} is out of range: it must be {constraint}")
     _validate_conv_stacks(config.world_model)
+    ac = config.actor_critic
+    if ac.actor_min_std > ac.actor_max_std:
+        raise ConfigError(
+            f"config keys actor_critic.actor_min_std={ac.actor_min_std} and actor_critic.actor_max_std="
+            f"{ac.actor_max_std}: the least spread is above the most; swap them"
+        )
     curl = config.curl
     padded = 64 + 2 * curl.pad  # frames are 64 x 64 (the image size every model here takes)
     if curl.crop > padded:

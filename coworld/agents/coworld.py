@@ -56,6 +56,8 @@ from coworld.training.online import OnlineTrainer, make_source_trainer, source_r
 from coworld.viz.training import log_open_loop
 
 CHECKPOINT_KIND = "coworld"
+COWORLD_CHECKPOINT_KEYS = ("agent", "source", "source_updates", "progress", "rng")
+"""What a CoWorld checkpoint holds beyond its kind (``save`` in :func:`train_coworld`)."""
 UNBOUNDED = 2**62  # source phases end by pausing after K2 updates, never by a step limit
 ALIGN_ON = ("latent", "embedding")
 ALIGN_SOURCE = "align_source"
@@ -256,7 +258,7 @@ def train_coworld(job: Any, *, device: torch.device, resumed: bool, progress: bo
         # restore: the combined checkpoint once past pretraining, else the pretraining checkpoint
         source_trainer.restore()
         if ckpt_path.exists():
-            state = load_checkpoint(ckpt_path, map_location=device)
+            state = load_checkpoint(ckpt_path, map_location=device, keys=COWORLD_CHECKPOINT_KEYS)
             if state.get("kind") != CHECKPOINT_KIND:
                 from coworld.errors import CheckpointError
 

@@ -28,9 +28,10 @@ from pathlib import Path
 from typing import Any
 
 from coworld import envs
+from coworld.budget import check_memory
 from coworld.config import PRESETS, make_config
 from coworld.errors import ConfigError, CoworldError
-from coworld.training.train import ALGOS, NEEDS_SOURCE
+from coworld.training.train import ALGOS, NEEDS_SOURCE, check_config
 
 COLLECT_POLICIES = ("dreamerv2", "random")
 QUALITIES = ("medium-replay", "medium", "expert")
@@ -160,9 +161,17 @@ class SweepSpec:
         self.data.check()
         for _, extra in self.variants:  # every run's config must build (unknown keys, bad values)
             make_config(self.preset, [*self.overrides, *extra])
+        for algo in self.algos:  # and pass what `train` requires of it (rules between keys, memory)
+            for name, extra in self.variants if algo == "coworld" else (("", ()),):
+                try:
+                    config = make_config(self.preset, [*self.overrides, *extra])
+                    for target in self.targets():
+                        check_config(algo, config, envs.task_spec(target).action_size)
+                except CoworldError as err:
+                    raise ConfigError(f"the {algo}{f' ({name})' if name else ''} runs: {err}") from None
         if self.data.policy == "dreamerv2":  # and the collector's: the same preset with the data's own --set
             try:
-                make_config(self.preset, self.data.overrides)
+                check_memory("dreamerv2", make_config(self.preset, self.data.overrides))
             except ConfigError as err:
                 raise ConfigError(f"data set: {err}") from None
         return self

@@ -102,7 +102,7 @@ def collect_dreamerv2(
     }
     for message in preset_warnings(preset, config.device) if warn is not None else ():
         warn(message)
-    resumed = prepare_run_dir(run_dir, config, info)
+    resumed = prepare_run_dir(run_dir, config, info, start_over=f"pass --force to start {out} and its agent over")
     seed_everything(config.seed)
     from coworld.agents.dreamerv2 import DreamerV2
 
