@@ -266,7 +266,7 @@ class CoWorldConfig:
     target_updates: Annotated[int, AT_LEAST_1] = 50_000
     """K1 of Alg. 1: target-agent updates per iteration, offline on dataset batches. Table 3 gives 2e4 and 5e4
     with its row names swapped against Alg. 1's symbols; we follow the names ("target domain update steps":
-    5e4), so the costly online phase is the shorter one (README, "CoWorld, term by term")."""
+    5e4), so the costly online phase is the shorter one (docs/algorithms.md, "The `paper` preset is Table 3")."""
     source_updates: Annotated[int, AT_LEAST_1] = 20_000
     """K2 of Alg. 1: source-agent updates per iteration, with source environment steps at the train ratio
     (Table 3's "source domain update steps": 2e4)."""
@@ -441,7 +441,7 @@ class Config:
     compile: bool = False
     """torch.compile the world model's loss and the imagination rollout whole, and the networks acting calls. Shapes
     are static: a batch of another size compiles anew. On the CPU: about 5 minutes of compilation at start, and
-    since issue 19's eager speed-ups no faster than eager (README, "Measured"). On an H100 the paper preset's had
+    since issue 19's eager speed-ups no faster than eager (docs/performance.md). On an H100 the paper preset's had
     not finished compiling after 4 minutes (benchmarks/RESULTS.md, "GPU")."""
     drqbc: DrqBcConfig = field(default_factory=DrqBcConfig)
     penalty: PenaltyConfig = field(default_factory=PenaltyConfig)

@@ -252,3 +252,16 @@ def test_an_unknown_config_key_is_found() -> None:
     assert config_key_problems("`train.no_such_key`") == ["no config key 'train.no_such_key' (in `train.no_such_key`)"]
     assert config_key_problems("`--set world_model.lrr=3e-4`") != []
     assert "train.bach_size" in command_problem("coworld train --target walker_uphill --set train.bach_size=8")
+
+
+DOC_PATH = re.compile(r"\b((?:docs/[\w-]+|datasets/README)\.md)\b")
+
+
+@pytest.mark.parametrize("name", sorted(cli.COMMANDS))
+def test_each_command_says_what_it_is_for_and_points_to_its_docs(name: str) -> None:
+    command = cli.main.get_command(click.Context(cli.main), name)
+    assert command is not None and command.help
+    assert not command.get_short_help_str(limit=70).endswith("..."), "one line, whole in `coworld --help`'s list"
+    pointed = DOC_PATH.findall(command.help)
+    assert pointed, f"`coworld {name} --help` names no docs page"
+    assert all((ROOT / path).exists() for path in pointed), pointed
