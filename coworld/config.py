@@ -285,7 +285,7 @@ class CoWorldConfig:
     target_updates: Annotated[int, AT_LEAST_1] = 50_000
     """K1 of Alg. 1: target-agent updates per iteration, offline on dataset batches. Table 3 gives 2e4 and 5e4
     with its row names swapped against Alg. 1's symbols; we follow the names ("target domain update steps":
-    5e4), so the costly online phase is the shorter one (README, "CoWorld, term by term")."""
+    5e4), so the costly online phase is the shorter one (docs/algorithms.md, "The `paper` preset is Table 3")."""
     source_updates: Annotated[int, AT_LEAST_1] = 20_000
     """K2 of Alg. 1: source-agent updates per iteration, with source environment steps at the train ratio
     (Table 3's "source domain update steps": 2e4)."""

@@ -59,10 +59,11 @@ RESUME = "rerun the same command to resume"
 @click.option("--progress/--no-progress", default=True, help="Progress bars.")
 @interrupt.at_safe_points
 def train(target, source, dataset, algo, preset, logdir, seed, device, overrides, force, progress) -> None:
-    """Train on a fixed target dataset (CoWorld and dreamerv2-finetune also learn online in --source).
+    """Train CoWorld or a baseline on a dataset.
 
+    Learns from a fixed target dataset (CoWorld and dreamerv2-finetune also learn online in --source).
     Rerunning the same command on the same --logdir resumes from the last checkpoint (also after Ctrl-C, SIGTERM,
-    a kill or a full disk).
+    a kill or a full disk). Docs: docs/algorithms.md (what each algorithm computes), docs/usage.md.
     """
     from coworld.storage import check_writable
     from coworld.training.train import check_job, run_job

@@ -284,7 +284,8 @@ def toy_table() -> SweepSpec:
     its world model, the fine-tuned one first pretrains in the source as CoWorld's source does), CURL, CURL+CQL
     and DrQ+BC 3,000 of their cheaper updates. CoWorld's source pretrains for 2,000 environment steps and makes 100
     updates per iteration. Each run ends with a 10-episode
-    evaluation. Measured on 2 shared CPU cores (README), before DrQ+BC and the two DreamerV2 variants joined:
+    evaluation. Measured on 2 shared CPU cores (docs/reproducing.md), before DrQ+BC and the two DreamerV2 variants
+    joined:
     one seed of the four others took about 16 CPU-minutes, CoWorld's run 7 of them; their 3 seeds fit in half an
     hour with ``--jobs 2``.
     """
@@ -421,7 +422,7 @@ _DATA_KEYS = {f.name for f in dataclasses.fields(DataSpec)} - {"overrides"} | {"
 
 
 def read_grid_file(path: str | Path) -> dict[str, Any]:
-    """Read a TOML grid file into keyword arguments of :func:`build_spec` (see the README for its keys)."""
+    """Read a TOML grid file into keyword arguments of :func:`build_spec` (see docs/reproducing.md for its keys)."""
     path = Path(path)
     import tomllib
 
