@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 from collections.abc import Callable
 from pathlib import Path
+from types import ModuleType
 
 import numpy as np
 import pytest
@@ -285,14 +286,20 @@ def test_the_paper_preset_has_dreamerv2s_gru_and_older_configs_keep_theirs() -> 
 # -- through the command ------------------------------------------------------------------------------------------
 
 
-def train(dataset: Path, logdir: Path, *overrides: str) -> list[dict]:
+def train(dataset: Path, logdir: Path, *overrides: str, processes: ModuleType | None = None) -> list[dict]:
+    """A short offline DreamerV2 run through ``coworld train`` (in this process, or as a real one with
+    ``processes``); its logged metrics."""
     args = ["train", "--algo", "dreamerv2", "--target", "toy_reach", "--dataset", str(dataset), "--preset", "tiny"]
     args += ["--logdir", str(logdir), "--no-progress", "--device", "cpu"]
     for item in ("coworld.iterations=1", "coworld.target_updates=2", "train.log_every=1", "train.eval_episodes=1",
                  "train.batch_size=4", "train.seq_len=8", *overrides):  # fmt: skip
         args += ["--set", item]
-    result = CliRunner().invoke(main, args)
-    assert result.exit_code == 0, result.output
+    if processes is not None:
+        done = processes.run_cli(*args)
+        assert done.returncode == 0, done.stderr[-2000:]
+    else:
+        result = CliRunner().invoke(main, args)
+        assert result.exit_code == 0, result.output
     return [json.loads(line) for line in (logdir / "metrics.jsonl").read_text().splitlines()]
 
 
@@ -300,9 +307,12 @@ def first_wm_loss(rows: list[dict]) -> float:
     return next(row["wm/loss"] for row in rows if "wm/loss" in row)
 
 
-def test_the_command_trains_the_configured_activation_and_repeats_itself(tmp_path: Path, toy_dataset_writer) -> None:
+def test_the_command_trains_the_configured_activation_and_repeats_itself(
+    tmp_path: Path, toy_dataset_writer, processes: ModuleType
+) -> None:
     """Issue 50's done-when: ``--set world_model.act=silu`` trains a model whose first world-model loss equals the
-    reference backend's and differs from the elu run's; two identical commands log identical losses."""
+    reference backend's and differs from the elu run's; two identical commands (the second a process of its own)
+    log identical losses."""
     dataset = toy_dataset_writer(tmp_path / "toy.h5", episodes=2)
     silu = first_wm_loss(train(dataset, tmp_path / "silu", "world_model.act=silu"))
     silu_reference = first_wm_loss(
@@ -313,7 +323,7 @@ def test_the_command_trains_the_configured_activation_and_repeats_itself(tmp_pat
     assert silu == pytest.approx(silu_reference, rel=1e-5)
     assert first_wm_loss(elu_rows) == pytest.approx(elu_reference, rel=1e-5)
     assert abs(silu - first_wm_loss(elu_rows)) > 1e-4 * abs(silu)  # ten times the equalities' tolerance
-    again = train(dataset, tmp_path / "elu-again", "world_model.act=elu")
+    again = train(dataset, tmp_path / "elu-again", "world_model.act=elu", processes=processes)
     losses = [{k: v for k, v in row.items() if k.endswith("loss")} for row in elu_rows]
     assert losses == [{k: v for k, v in row.items() if k.endswith("loss")} for row in again]
 
