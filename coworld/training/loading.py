@@ -14,7 +14,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from coworld.config import Config, first_difference, to_dict
+from coworld.config import Config, first_difference, from_dict, to_dict
 from coworld.envs import task_spec
 from coworld.errors import CheckpointError, CoworldError
 from coworld.training.checkpoint import CHECKPOINT_NAME, load_checkpoint
@@ -85,6 +85,10 @@ def check_matches(state: Mapping[str, Any], ckpt: Path, config: Config, info: Ma
         raise CheckpointError(f"{ckpt} learned from source {state['source_task']}, not {info['source']}; {fix}")
     saved = state.get("config")
     if isinstance(saved, Mapping):
+        try:  # read as config.json was: keys added since it was saved take the values the older code computed with
+            saved = to_dict(from_dict(saved))
+        except CoworldError:
+            pass  # a config this version cannot read: compared as it is, so its first odd key is named
         diff = first_difference(dict(saved), to_dict(config))
         if diff:
             raise CheckpointError(f"{ckpt} was made with other settings than {ckpt.parent}/config.json ({diff}); {fix}")
