@@ -8,6 +8,9 @@
 # receives one run folder and log per side and block, and prints the 1-minute load average before each run and
 # the logged rates.
 #
+# NEW_SETS in the environment adds settings to NEW_TREE's runs alone (e.g. NEW_SETS="train.backend=reference", a
+# key an older checkout does not have).
+#
 # With ALGO=coworld in the environment the command is CoWorld's instead (toy_reach as the online source, 600 source
 # steps of pretraining, then 200 target updates and 100 source updates): it prints each run's logged
 # target/perf/updates_per_s (every 50 target updates, dataset batches made ahead as the run makes them) and
@@ -29,7 +32,8 @@ esac
 mkdir -p "$out"
 for block in $(seq 0 $((blocks - 1))); do
   for side in base new; do
-    tree=$base; [ $side = new ] && tree=$new
+    tree=$base; sets=()
+    if [ $side = new ]; then tree=$new; for item in ${NEW_SETS:-}; do sets+=(--set "$item"); done; fi
     run="$out/$side-b$block"
     [ -e "$run" ] && { echo "$run exists; choose an empty OUT" >&2; exit 2; }
     load=$(cut -d' ' -f1 /proc/loadavg)
@@ -39,7 +43,7 @@ for block in $(seq 0 $((blocks - 1))); do
       train --algo "$algo" \
       --source toy_reach --target toy_reach_shifted --dataset "$data" --preset tiny --threads 1 --no-progress \
       --set train.batch_size=16 --set train.seq_len=32 "${length[@]}" \
-      --set train.log_every=50 --set train.eval_episodes=1 --logdir "$run" "$@" > "$run.log" 2>&1)
+      --set train.log_every=50 --set train.eval_episodes=1 --logdir "$run" "${sets[@]}" "$@" > "$run.log" 2>&1)
     for rate in "${rates[@]}"; do
       # the source's windows from its pretraining (no target batch in its updates) are left out
       logged=$("$python" -c 'import json, sys

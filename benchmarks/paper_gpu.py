@@ -5,7 +5,9 @@ Each part runs in a fresh process (so compilation caches and peak-memory counter
 and prints one JSON line per measurement as soon as it has it, so a part cut off by its limit still reports what
 it finished:
 
-* ``update MODE`` (``fp32-eager``, ``bf16-eager``, ``fp32-compile``, ``bf16-compile``): DreamerV2's update, then
+* ``update MODE`` (``fp32-eager``, ``bf16-eager``, ``fp32-compile``, ``bf16-compile``; ``fp32-phases``: eager with
+  the CPU path's decoder-phase forms forced onto the GPU, against the reference that ``fp32-eager`` runs;
+  ``fp32-graphs``: compiled with ``compile_mode=reduce-overhead``, CUDA graphs): DreamerV2's update, then
   CoWorld's target update and source update (with the relabelled-reward pass over a target batch), each on a
   random batch of the preset's size. Per update: the warm-up's seconds (with compile, the compilation), the
   median and min seconds of the timed updates (CUDA synchronised before each clock read), and the peak GPU
@@ -51,7 +53,7 @@ from coworld.config import PRESETS, Config, make_config  # noqa: E402
 from coworld.storage import write_text_atomically  # noqa: E402
 from coworld.training.run import resolve_device  # noqa: E402
 
-MODES = ("bf16-eager", "fp32-eager", "bf16-compile", "fp32-compile")
+MODES = ("bf16-eager", "fp32-eager", "fp32-phases", "bf16-compile", "fp32-compile", "fp32-graphs")
 UPDATES = ("dreamerv2", "coworld target", "coworld source")
 
 
@@ -122,7 +124,19 @@ def time_update(
 
 def mode_config(args: argparse.Namespace, mode: str) -> Config:
     precision, how = mode.split("-")
-    return make_config(args.preset, {"device": args.device, "precision": precision, "compile": how == "compile"})
+    settings = {"device": args.device, "precision": precision, "compile": how in ("compile", "graphs")}
+    if how == "graphs":
+        settings["compile_mode"] = "reduce-overhead"
+    return make_config(args.preset, settings)
+
+
+def with_phases(agent: Any) -> Any:
+    """``agent`` with the CPU path's decoder-phase forms (coworld.backends.cpu) forced onto its device, which
+    ``train.backend`` never does off a CPU: to see whether they would win there."""
+    from coworld.backends import cpu
+
+    agent.model_path = cpu.CpuPath(agent.world_model, *cpu.pixel_affine())
+    return agent
 
 
 def part_update(args: argparse.Namespace, mode: str) -> None:
@@ -135,10 +149,14 @@ def part_update(args: argparse.Namespace, mode: str) -> None:
     batch = random_batch(config.train.batch_size, config.train.seq_len, args.action_size)
     _reset_memory(device)
     dreamer = DreamerV2(config=config, action_size=args.action_size, device=device)
+    if mode.endswith("phases"):
+        with_phases(dreamer)
     time_update("dreamerv2", mode, partial(dreamer.train, batch), device, args.warmup, args.updates)
     del dreamer  # its memory back before CoWorld's two agents
     _reset_memory(device)
     pair = CoWorld(config=config, action_size=args.action_size, device=device)
+    if mode.endswith("phases"):
+        with_phases(pair.source), with_phases(pair.target)
     pair.target_batches = iter(lambda: batch, None)  # the relabelled-reward pass's target batches
     time_update("coworld target", mode, lambda: pair.train_target(batch), device, args.warmup, args.updates)
     _reset_memory(device)
@@ -307,7 +325,7 @@ def main() -> None:
         return max(0.0, min(most, deadline - time.perf_counter()))
 
     records: list[dict[str, Any]] = []
-    eager = [m for m in modes if m.endswith("eager")]
+    eager = [m for m in modes if m.endswith(("eager", "phases"))]
     for mode in eager:
         records += run_part(args, ["update", mode], limit(args.limit))
         if not any(r.get("mode") == mode for r in records):

@@ -44,8 +44,7 @@ update autocasts to float16 on any device, which on a CPU is ten times slower). 
 checkouts, not copied; ``--peer-python`` names an interpreter with torch and ruamel.yaml (and, for r2dreamer,
 hydra-core and tensordict). ``--flops`` has every side count the floating-point operations of one more update, untimed
 (PyTorch's ``FlopCounterMode``: matrix products and convolutions, forward and backward): on our sides after the
-warm-up, so that the forms :mod:`coworld.models.autotune` times on a first call are neither timed under the counter
-nor counted (with ``--warmup 0`` the counted update is the first); on the peers' before it.
+warm-up (with ``--warmup 0`` the counted update is the first); on the peers' before it.
 """
 
 from __future__ import annotations

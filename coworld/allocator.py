@@ -23,6 +23,7 @@ from __future__ import annotations
 import ctypes
 import ctypes.util
 import os
+import signal
 import sys
 
 __all__ = ["exec_with_tcmalloc", "keep_freed_memory", "tcmalloc_loaded", "tcmalloc_preload"]
@@ -33,7 +34,7 @@ _M_MMAP_THRESHOLD = -3
 _SETTINGS = ((_M_MMAP_THRESHOLD, 1 << 30), (_M_TRIM_THRESHOLD, 1 << 30), (_M_TOP_PAD, 1 << 28))
 
 CHOICE = "COWORLD_MALLOC"
-"""Environment variable: ``tcmalloc`` (the default: use it where installed) or ``glibc``."""
+"""Environment variable: ``tcmalloc`` (the default, also when empty: use it where installed) or ``glibc``."""
 _TRIED = "COWORLD_MALLOC_PRELOADED"
 """Set in the environment of the re-run, so that a library that did not load is not tried again."""
 
@@ -50,7 +51,7 @@ def tcmalloc_loaded() -> bool:
 def tcmalloc_preload() -> dict[str, str] | None:
     """The environment variables that preload tcmalloc into a new process, or None where it is not installed,
     not on Linux, or turned off with ``COWORLD_MALLOC=glibc``."""
-    choice = os.environ.get(CHOICE, "tcmalloc")
+    choice = os.environ.get(CHOICE) or "tcmalloc"  # set but empty: the default, as for an unset variable
     if choice not in ("tcmalloc", "glibc"):
         raise ValueError(f"{CHOICE}={choice!r}: use tcmalloc or glibc")
     if choice == "glibc" or not sys.platform.startswith("linux"):
@@ -78,7 +79,14 @@ def exec_with_tcmalloc() -> None:
         return
     sys.stdout.flush()
     sys.stderr.flush()
-    os.execve(sys.executable, [sys.executable, *sys.orig_argv[1:]], {**os.environ, **preload})
+    # Ctrl-C or SIGTERM while the new process starts would raise KeyboardInterrupt in its imports (or end it): the
+    # signals stay blocked across the exec, pending, until the command's handlers take them
+    # (:func:`coworld.interrupt.release_held_signals`).
+    held = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
+    try:
+        os.execve(sys.executable, [sys.executable, *sys.orig_argv[1:]], {**os.environ, **preload})
+    except OSError:  # no exec: carry on in this process, signals as they were
+        signal.pthread_sigmask(signal.SIG_SETMASK, held)
 
 
 def keep_freed_memory() -> bool:

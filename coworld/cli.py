@@ -64,6 +64,7 @@ class _LazyGroup(click.Group):
         allocator.keep_freed_memory()  # glibc's malloc keeps freed tensors' memory (a no-op under tcmalloc)
         with interrupt.handling_signals():  # from the start: importing a command can take seconds
             try:
+                interrupt.release_held_signals()  # a Ctrl-C while the command started again under tcmalloc
                 return super().main(*args, **kwargs)
             except (interrupt.Interrupted, Exception) as err:
                 stop = interrupt.stop_for(err)
@@ -76,7 +77,11 @@ class _LazyGroup(click.Group):
 @click.group(cls=_LazyGroup, context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(__version__, prog_name="coworld")
 def main() -> None:
-    """Offline visual RL across domains: collect datasets, train CoWorld and baselines, evaluate."""
+    """Offline visual RL across domains: datasets, CoWorld and baselines, evaluation, the paper's tables.
+
+    Start with README.md; each command's details are in docs/usage.md, the algorithms in docs/algorithms.md,
+    the paper's tables in docs/reproducing.md (paths in the coworld repository).
+    """
 
 
 def run() -> None:

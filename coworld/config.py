@@ -85,6 +85,20 @@ class WorldModelConfig:
 
     cnn_depth: Annotated[int, AT_LEAST_1] = 48
     """Channels of the first conv layer; layers double it (48-96-192-384)."""
+    encoder_kernels: tuple[int, ...] = (4, 4, 4, 4)
+    """Kernel of each stride-2 encoder conv layer, one layer each (DreamerV2: 4, 4, 4, 4); e.g. ``3,3,3,3,3``."""
+    decoder_kernels: tuple[int, ...] = (5, 5, 6, 6)
+    """Kernel of each stride-2 transposed decoder conv from 1 x 1, one layer each; they must end at 64 x 64
+    (DreamerV2: 5, 5, 6, 6)."""
+    act: Annotated[str, OneOf(("elu", "silu", "relu", "gelu", "tanh"))] = "elu"
+    """Hidden activation of the conv encoder and decoder and of the RSSM's MLPs (DreamerV2: elu; DreamerV3: silu)."""
+    norm: Annotated[str, OneOf(("none", "layer"))] = "none"
+    """Normalisation after each hidden layer of the conv stacks (over channels) and the RSSM's MLPs: 'none'
+    (DreamerV2) or 'layer' (DreamerV3's LayerNorm)."""
+    gru_bias: bool = True
+    """A bias in the GRU's gate layer before its LayerNorm (DreamerV2's ``GRUCell`` has one)."""
+    gru_eps: Annotated[float, POSITIVE] = 1e-3
+    """Epsilon of the GRU's LayerNorm (DreamerV2: Keras's 1e-3)."""
     deter: Annotated[int, AT_LEAST_1] = 600
     """Deterministic GRU state size (Table 3: RSSM 600 units)."""
     hidden: Annotated[int, AT_LEAST_1] = 600
@@ -240,6 +254,11 @@ class TrainConfig:
     """Online runs: each update runs on a background thread while the agent takes the next ``train_every``
     environment steps with a copy of the weights from before it, so acting and learning use two cores at the same
     train ratio; the agent then acts one update behind (:mod:`coworld.training.online`)."""
+    backend: Annotated[str, OneOf(("auto", "reference", "cpu"))] = "auto"
+    """How the world model's loss is computed. 'reference': the plain PyTorch modules of :mod:`coworld.models`.
+    'cpu': the CPU fast path (:mod:`coworld.backends.cpu`), which reads the same weights and is first checked to
+    compute the configured model (refused with one line where it cannot). 'auto': the CPU fast path where it applies
+    and passes that check (float32 on a CPU, eager), else the reference, with one line saying why."""
     prefetch: bool = True
     """Offline batches (offline DreamerV2 and its variants, the model-free baselines, CoWorld's target data): the
     next batch is drawn from the dataset and laid out for the model on a background thread while the current update
@@ -266,7 +285,7 @@ class CoWorldConfig:
     target_updates: Annotated[int, AT_LEAST_1] = 50_000
     """K1 of Alg. 1: target-agent updates per iteration, offline on dataset batches. Table 3 gives 2e4 and 5e4
     with its row names swapped against Alg. 1's symbols; we follow the names ("target domain update steps":
-    5e4), so the costly online phase is the shorter one (README, "CoWorld, term by term")."""
+    5e4), so the costly online phase is the shorter one (docs/algorithms.md, "The `paper` preset is Table 3")."""
     source_updates: Annotated[int, AT_LEAST_1] = 20_000
     """K2 of Alg. 1: source-agent updates per iteration, with source environment steps at the train ratio
     (Table 3's "source domain update steps": 2e4)."""
@@ -436,13 +455,17 @@ class Config:
     device: Annotated[str, OneOf(("auto", "cpu", "cuda"), pattern=r"cuda:\d+", pattern_text="cuda:N")] = "auto"
     """'auto' (CUDA when available), 'cpu' or 'cuda'."""
     precision: Annotated[str, OneOf(("auto", "bf16", "fp32"))] = "auto"
-    """'auto' (bf16 autocast on CUDA, fp32 on CPU), 'bf16' or 'fp32'. On one H100 the paper preset's eager update
-    was 1.19x slower in bf16 than in fp32: that update is bound by kernel launches (benchmarks/RESULTS.md, "GPU")."""
+    """'auto' (fp32 on every device), 'bf16' (autocast) or 'fp32'. 'auto' is fp32 on CUDA too because the one GPU
+    measurement found the paper preset's update 1.19x slower in bf16 (bound by kernel launches, not arithmetic;
+    benchmarks/RESULTS.md, "GPU")."""
     compile: bool = False
-    """torch.compile the world model's loss and the imagination rollout whole, and the networks acting calls. Shapes
-    are static: a batch of another size compiles anew. On the CPU: about 5 minutes of compilation at start, and
-    since issue 19's eager speed-ups no faster than eager (README, "Measured"). On an H100 the paper preset's had
-    not finished compiling after 4 minutes (benchmarks/RESULTS.md, "GPU")."""
+    """torch.compile the reference world model's loss and the imagination rollout, each as one graph
+    (``fullgraph``), and the networks acting calls. Shapes are static: a batch of another size compiles anew. The
+    compiled run takes the reference path (``train.backend``); its cost and gain per device are in
+    benchmarks/RESULTS.md."""
+    compile_mode: Annotated[str, OneOf(("default", "reduce-overhead", "max-autotune"))] = "default"
+    """torch.compile's ``mode`` where ``compile`` is on: 'reduce-overhead' replays each compiled graph as a CUDA
+    graph on a GPU (its launches at once), 'max-autotune' also times kernel choices."""
     drqbc: DrqBcConfig = field(default_factory=DrqBcConfig)
     penalty: PenaltyConfig = field(default_factory=PenaltyConfig)
 
@@ -456,6 +479,10 @@ PRESETS: dict[str, dict[str, Any]] = {
     # (benchmarks/RESULTS.md, "The actor collapse, fourth pass").
     "cpu": {
         "world_model.cnn_depth": 8,
+        # The GRU every result of this preset was measured with: no gate bias, LayerNorm epsilon 1e-5 (the paper
+        # preset has DreamerV2's bias and 1e-3).
+        "world_model.gru_bias": False,
+        "world_model.gru_eps": 1e-5,
         "world_model.deter": 64,
         "world_model.hidden": 64,
         "world_model.stoch": 8,
@@ -511,6 +538,10 @@ PRESETS: dict[str, dict[str, Any]] = {
     # Small enough that a whole collect -> train -> eval runs on 2 CPU cores in minutes.
     "tiny": {
         "world_model.cnn_depth": 8,
+        # The GRU every result of this preset was measured with: no gate bias, LayerNorm epsilon 1e-5 (the paper
+        # preset has DreamerV2's bias and 1e-3).
+        "world_model.gru_bias": False,
+        "world_model.gru_eps": 1e-5,
         "world_model.deter": 64,
         "world_model.hidden": 64,
         "world_model.stoch": 8,
@@ -587,6 +618,13 @@ def validate(config: Config) -> None:
     for dotted, value, constraint in _constrained_values(config):
         if not constraint.contains(value):
             raise ConfigError(f"config key {dotted}={value!r} is out of range: it must be {constraint}")
+    _validate_conv_stacks(config.world_model)
+    ac = config.actor_critic
+    if ac.actor_min_std > ac.actor_max_std:
+        raise ConfigError(
+            f"config keys actor_critic.actor_min_std={ac.actor_min_std} and actor_critic.actor_max_std="
+            f"{ac.actor_max_std}: the least spread is above the most; swap them"
+        )
     curl = config.curl
     padded = 64 + 2 * curl.pad  # frames are 64 x 64 (the image size every model here takes)
     if curl.crop > padded:
@@ -598,6 +636,29 @@ def validate(config: Config) -> None:
         raise ConfigError(
             f"config keys curl.crop={curl.crop} and curl.num_layers={curl.num_layers} leave no pixels after the"
             " convolutions; use fewer layers or a larger crop"
+        )
+
+
+def _validate_conv_stacks(wm: WorldModelConfig) -> None:
+    """The encoder's kernels leave at least one pixel of a 64 x 64 image; the decoder's end at 64 x 64."""
+    for key, kernels in (("encoder_kernels", wm.encoder_kernels), ("decoder_kernels", wm.decoder_kernels)):
+        if not kernels or not all(2 <= k <= 16 for k in kernels):
+            raise ConfigError(f"config key world_model.{key}={kernels!r} needs one kernel per layer, each 2 to 16")
+    side = 64
+    for kernel in wm.encoder_kernels:
+        side = (side - kernel) // 2 + 1
+    if side < 1:
+        raise ConfigError(
+            f"config key world_model.encoder_kernels={wm.encoder_kernels!r} leaves no pixels of a 64 x 64 image;"
+            " use fewer or smaller kernels"
+        )
+    side = 1
+    for kernel in wm.decoder_kernels:
+        side = (side - 1) * 2 + kernel
+    if side != 64:
+        raise ConfigError(
+            f"config key world_model.decoder_kernels={wm.decoder_kernels!r} decodes {side} x {side} images, not"
+            " 64 x 64 (each layer maps side s to 2 (s - 1) + kernel, from 1)"
         )
 
 
@@ -650,6 +711,12 @@ def _replace(node: Any, path: list[str], value: Any, dotted: str) -> Any:
 def _cast(value: Any, hint: Any, dotted: str) -> Any:
     if isinstance(hint, types.UnionType):
         hint = next(arg for arg in typing.get_args(hint) if arg is not type(None))
+    if typing.get_origin(hint) is tuple:  # tuple[int, ...]: "4,4,4" or a list saved as JSON
+        items = value.split(",") if isinstance(value, str) else value
+        try:
+            return tuple(_cast(item, int, dotted) for item in items)
+        except (ConfigError, TypeError):
+            raise ConfigError(f"config key {dotted!r} takes whole numbers separated by commas, got {value!r}") from None
     try:
         if hint is bool:
             if isinstance(value, bool):
@@ -715,6 +782,11 @@ def to_json(config: Config) -> str:
     return json.dumps(to_dict(config), indent=2, sort_keys=True)
 
 
+LEGACY_DEFAULTS: dict[str, Any] = {"world_model.gru_bias": False, "world_model.gru_eps": 1e-5}
+"""What a saved config without these keys (written before they existed) computed: its GRU had no gate bias and
+LayerNorm's epsilon 1e-5. Keys added later with a default that computes what the older code did are not listed."""
+
+
 def from_dict(data: Mapping[str, Any]) -> Config:
     """Rebuild a config saved with :func:`to_dict`; unknown keys raise ConfigError."""
     flat: dict[str, Any] = {}
@@ -727,6 +799,8 @@ def from_dict(data: Mapping[str, Any]) -> Config:
                 flat[prefix + key] = value
 
     walk(data, "")
+    for key, value in LEGACY_DEFAULTS.items():
+        flat.setdefault(key, value)
     config = apply_overrides(Config(), flat)
     validate(config)
     return config

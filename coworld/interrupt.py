@@ -8,8 +8,9 @@ So the CLI installs :func:`handling_signals`: a signal raises :class:`Interrupte
 :func:`at_safe_points` part of a long command, where it only sets a flag and the long loops call :func:`check`
 where stopping leaves their output whole (between environment steps, updates, episodes). If no check comes within
 :data:`GRACE_SECONDS` (the main thread waits for worker processes to start, or runs one long update), the signal is
-delivered again to the main thread and raises there, interrupting the wait. Stopping anywhere is safe for the files:
-datasets commit whole episodes and checkpoints are renamed into place, as they must be for ``kill -9``. A second
+delivered again to the main thread and raises there, interrupting the wait; raised where it cannot propagate (a
+weakref callback, of which torch.compile runs many) it is delivered again shortly. Stopping anywhere is safe for the
+files: datasets commit whole episodes and checkpoints are renamed into place, as they must be for ``kill -9``. A second
 signal stops at once; a third is not caught at all. Once a stop is asked, an error on the way out (worker processes
 killed by the same SIGTERM, sent to the whole process group) is part of the stop, and warnings are no longer shown.
 The CLI prints one line (what was kept, how to resume) and exits with 128 + the signal number.
@@ -23,6 +24,7 @@ from __future__ import annotations
 
 import functools
 import signal
+import sys
 import threading
 import warnings
 from collections.abc import Callable, Iterator
@@ -34,6 +36,8 @@ F = TypeVar("F", bound=Callable[..., Any])
 SIGNALS = (signal.SIGINT, signal.SIGTERM)
 GRACE_SECONDS = 1.5
 """How long a stop waits for the next :func:`check` before it interrupts the main thread wherever it is."""
+RETRY_SECONDS = 0.1
+"""How soon a stop that was raised where it could not propagate (a weakref callback) is delivered again."""
 
 
 class Interrupted(BaseException):
@@ -70,6 +74,7 @@ class _State:
         self.escalating = False  # the grace period ran out: the next delivery raises wherever the main thread is
         self.count = 0  # signals received from outside
         self.timer: threading.Timer | None = None
+        self.previous_unraisable: Callable[[Any], Any] = sys.__unraisablehook__
 
 
 _state = _State()
@@ -111,6 +116,19 @@ def _handle(signum: int, frame: Any) -> None:
     _raise(signum)
 
 
+def _swallowed(args: Any) -> None:
+    """``sys.unraisablehook`` while signals are handled: a stop raised inside a weakref callback or a ``__del__``
+    (torch.compile runs many) cannot propagate and would be lost, so it is delivered again shortly, wherever the main
+    thread is then; anything else goes to the hook that was there before."""
+    if isinstance(args.exc_value, Interrupted) and _state.installed:
+        _state.raised = False
+        _state.timer = threading.Timer(RETRY_SECONDS, _escalate, args=(args.exc_value.signum,))
+        _state.timer.daemon = True
+        _state.timer.start()
+        return
+    _state.previous_unraisable(args)
+
+
 def _escalate(signum: int) -> None:
     """Runs in the timer thread: no check came in time, so interrupt the main thread where it is."""
     if _state.raised or not _state.installed:
@@ -135,16 +153,27 @@ def handling_signals() -> Iterator[None]:
     for sig in SIGNALS:
         if previous[sig] is not signal.SIG_IGN:
             signal.signal(sig, _handle)
+    _state.previous_unraisable = sys.unraisablehook
+    sys.unraisablehook = _swallowed
     _state.installed = True
     try:
         yield
     finally:
+        sys.unraisablehook = _state.previous_unraisable
         if _state.timer is not None:
             _state.timer.cancel()
         for sig, handler in previous.items():
             signal.signal(sig, handler if handler is not None else signal.SIG_DFL)
         warnings.filters[:] = filters
         _state = _State()
+
+
+def release_held_signals() -> None:
+    """Deliver SIGINT and SIGTERM that were blocked while the command started again under tcmalloc
+    (:func:`coworld.allocator.exec_with_tcmalloc`); call it inside :func:`handling_signals`, where a pending one
+    raises :class:`Interrupted` like any other. Nothing happens where none was blocked."""
+    if threading.current_thread() is threading.main_thread():
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, SIGNALS)
 
 
 @contextmanager

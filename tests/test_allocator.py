@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import signal
 import subprocess
 import sys
 
@@ -101,3 +102,37 @@ def test_keep_freed_memory_is_a_no_op_under_tcmalloc(monkeypatch: pytest.MonkeyP
         [sys.executable, "-c", code], capture_output=True, text=True, check=True, env=_clean_env(**preload)
     )
     assert out.stdout.split() == ["True", "False"]
+
+
+def test_ctrl_c_while_the_command_starts_again_under_tcmalloc_is_the_one_stop_line() -> None:
+    """exec_with_tcmalloc blocks SIGINT and SIGTERM across its exec; a Ctrl-C in that window waits, pending, for the
+    command's handlers: "stopped by SIGINT" and exit code 130, not a KeyboardInterrupt traceback from the imports."""
+    code = (
+        "import os, signal, sys\n"
+        "os.execve = lambda *a: print(sorted(signal.pthread_sigmask(signal.SIG_BLOCK, [])))\n"
+        "from coworld import allocator\n"
+        "allocator.exec_with_tcmalloc()\n"
+    )
+    env = _clean_env()
+    env.pop(allocator.CHOICE, None)
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=60)
+    assert out.stdout.strip() == str(sorted([signal.SIGINT, signal.SIGTERM])), out.stderr
+    # the command started again with SIGINT blocked and already pending, as after a Ctrl-C in the window
+    start = (
+        "import os, signal, sys\n"
+        "signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})\n"
+        "os.kill(os.getpid(), signal.SIGINT)\n"
+        "os.execve(sys.executable, [sys.executable, '-c', 'from coworld.cli import run; run()', 'tasks'], os.environ)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", start], capture_output=True, text=True, env=env, timeout=60)
+    assert out.returncode == 130 and out.stderr.strip() == "stopped by SIGINT", out.stderr
+
+
+def test_an_empty_coworld_malloc_is_the_default() -> None:
+    out = subprocess.run(
+        [sys.executable, "-c", "from coworld.cli import run; run()", "--help"],
+        capture_output=True,
+        text=True,
+        env=_clean_env(COWORLD_MALLOC=""),
+    )
+    assert out.returncode == 0 and "Usage" in out.stdout, out.stderr

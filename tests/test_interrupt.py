@@ -91,6 +91,48 @@ def test_a_stop_that_meets_no_check_interrupts_the_main_thread_after_the_grace_p
     assert interrupt.GRACE_SECONDS <= waited < interrupt.GRACE_SECONDS + 2
 
 
+def test_a_stop_raised_inside_a_weakref_callback_is_delivered_again() -> None:
+    """torch.compile runs many weakref callbacks; a stop raised inside one is ignored by Python ("Exception ignored"),
+    so it must come again rather than wait for the next check (which compilation may not reach for a minute)."""
+    import weakref
+
+    class Graph:
+        pass
+
+    def busy(seconds: float) -> None:
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            pass
+
+    def callback(ref: object) -> None:
+        busy(0.3)  # the grace period's delivery lands here, where an exception cannot propagate
+
+    with interrupt.handling_signals(), interrupt.safe_points():
+        start = time.monotonic()
+        with pytest.raises(interrupt.Interrupted):
+            _send(signal.SIGINT)
+            while time.monotonic() - start < 30:  # "compiling": no check, half the time inside weakref callbacks
+                graph = Graph()
+                _ref = weakref.ref(graph, callback)
+                del graph
+                busy(0.3)
+        waited = time.monotonic() - start
+    assert waited < interrupt.GRACE_SECONDS + 5, waited
+
+
+@pytest.mark.slow
+def test_a_signal_while_torch_compiles_stops_the_run_within_the_bound(
+    tmp_path: Path, processes: ModuleType, toy_dataset_writer
+) -> None:
+    dataset = toy_dataset_writer(tmp_path / "toy.h5", "toy_reach_shifted")
+    run = tmp_path / "run"
+    proc = processes.start_cli(*TRAIN_DV2, "--dataset", str(dataset), "--logdir", str(run), "--set", "compile=true")
+    processes.wait_for((run / "config.json").exists, proc, what="the run folder")
+    time.sleep(8)  # inside the first update's compilation (minutes on a CPU)
+    line = _line(processes.stop(proc, signal.SIGINT, group=True), signal.SIGINT)
+    assert line.startswith("stopped by SIGINT: ")
+
+
 def test_a_second_signal_stops_at_once_and_a_third_is_not_caught() -> None:
     with interrupt.handling_signals(), interrupt.safe_points():
         _send(signal.SIGINT)

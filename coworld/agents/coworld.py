@@ -57,6 +57,8 @@ from coworld.training.online import OnlineTrainer, make_source_trainer, source_r
 from coworld.viz.training import log_open_loop
 
 CHECKPOINT_KIND = "coworld"
+COWORLD_CHECKPOINT_KEYS = ("agent", "source", "source_updates", "progress", "rng")
+"""What a CoWorld checkpoint holds beyond its kind (``save`` in :func:`train_coworld`)."""
 UNBOUNDED = 2**62  # source phases end by pausing after K2 updates, never by a step limit
 ALIGN_ON = ("latent", "embedding")
 ALIGN_SOURCE = "align_source"
@@ -88,7 +90,7 @@ class CoWorld:
         """One target world-model step with Eq. 3 and one target actor-critic step with Eq. 6 (the latter, as in
         :meth:`DreamerV2.train`, only once the target agent has made ``train.actor_warmup`` updates)."""
         cfg = self.config.coworld
-        batch_t = self.target.prepare(batch)  # the images' phases once, for both world models
+        batch_t = self.target.prepare(batch)  # laid out once for both world models
         extra = None
         if cfg.align:
             source = batch_t.get(ALIGN_SOURCE)
@@ -136,11 +138,11 @@ class CoWorld:
         model without gradient: its posterior's log-probabilities ``(B, T, S, K)`` (``align_on='latent'``; the
         latent samples' noise drawn from ``generator``, torch's default if None) or its embeddings ``(B, T, E)``
         (``'embedding'``)."""
-        world_model = self.source.world_model
+        path = self.source.model_path
         with torch.no_grad():
             if self.config.coworld.align_on == "embedding":
-                return world_model.embed(batch)
-            post, _, _ = world_model.observe(batch, generator=generator)
+                return path.embed(batch)
+            post, _, _ = path.observe(batch, generator=generator)
             return post["logits"]
 
     # -- the source agent's update (Alg. 1 lines 12-16) -----------------------------------------------------------
@@ -153,7 +155,7 @@ class CoWorld:
             target_batch = self.source.to_batch(next(self.target_batches))
 
             def extra(_: dict[str, Tensor], __: dict[str, Any]) -> dict[str, Tensor]:
-                post, _, _ = self.source.world_model.observe(target_batch)
+                post, _, _ = self.source.model_path.observe(target_batch)
                 head = self.source.world_model.reward_head(self.source.world_model.features(post))
                 label = relabel_reward(head.mean, target_batch["reward"].float(), cfg.k)
                 return {"relabel": source_reward_loss_on_target(head, label).mean()}
@@ -261,7 +263,7 @@ def train_coworld(job: Any, *, device: torch.device, resumed: bool, progress: bo
         # restore: the combined checkpoint once past pretraining, else the pretraining checkpoint
         source_trainer.restore()
         if ckpt_path.exists():
-            state = load_checkpoint(ckpt_path, map_location=device)
+            state = load_checkpoint(ckpt_path, map_location=device, keys=COWORLD_CHECKPOINT_KEYS)
             if state.get("kind") != CHECKPOINT_KIND:
                 from coworld.errors import CheckpointError
 

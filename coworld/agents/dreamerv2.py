@@ -18,7 +18,9 @@ from typing import Any, Literal
 import numpy as np
 import torch
 from torch import Tensor
+from torch._inductor import list_mode_options
 
+from coworld import backends
 from coworld.config import Config
 from coworld.errors import ConfigError
 from coworld.models.actor_critic import ActorCritic, ValueRegulariser, flatten_states
@@ -56,9 +58,10 @@ _OPTIM_KEYS = ("wm_opt", "actor_opt", "critic_opt")
 
 
 def resolve_precision(precision: str, device: torch.device) -> torch.dtype | None:
-    """The autocast dtype: 'auto' -> bf16 on CUDA and None (fp32) on CPU; 'bf16' -> bf16; 'fp32' -> None."""
+    """The autocast dtype: 'auto' -> None (fp32) on every device; 'bf16' -> bf16; 'fp32' -> None. (On one H100 the
+    paper preset's update was 1.19x slower in bf16 than in fp32; benchmarks/RESULTS.md, "GPU".)"""
     if precision == "auto":
-        return torch.bfloat16 if device.type == "cuda" else None
+        return None
     if precision == "bf16":
         return torch.bfloat16
     if precision == "fp32":
@@ -104,6 +107,8 @@ class DreamerV2:
         )
         self.updates = 0
         """Completed calls of :meth:`train`."""
+        self.model_path = backends.select(self.world_model, config, self.device, self.autocast_dtype is not None)
+        """How the world model's loss is computed (``train.backend``): the reference or a checked fast path."""
         self.compiled = config.compile
         if self.compiled:
             self._compile()
@@ -189,10 +194,10 @@ class DreamerV2:
         return out
 
     def prepare(self, batch: Mapping[str, np.ndarray | Tensor]) -> dict[str, Tensor]:
-        """:meth:`to_batch` and :meth:`WorldModel.prepare <coworld.models.world_model.WorldModel.prepare>`: the
-        batch as the update reads it, made with no weight (so :class:`~coworld.data.prefetch.Prefetcher` can make
-        the next one during an update). :meth:`train` takes batches either way."""
-        return self.world_model.prepare(self.to_batch(batch))
+        """:meth:`to_batch` and the model path's ``prepare`` (:mod:`coworld.backends`): the batch as the update
+        reads it, made with no weight (so :class:`~coworld.data.prefetch.Prefetcher` can make the next one during an
+        update). :meth:`train` takes batches either way."""
+        return self.model_path.prepare(self.to_batch(batch))
 
     def train(self, batch: Mapping[str, np.ndarray | Tensor]) -> dict[str, float]:
         """One world-model update and one actor-critic update in imagination (the latter only once
@@ -212,7 +217,7 @@ class DreamerV2:
         :data:`ExtraWorldModelLoss`)."""
         batch_t = self.to_batch(batch)
         with self._autocast():
-            terms, aux = self.world_model.loss(batch_t)
+            terms, aux = self.model_path.loss(batch_t)
             loss = aux["loss"]
             extras = extra_loss(batch_t, aux) if extra_loss is not None else {}
             for term in extras.values():
@@ -304,20 +309,21 @@ class DreamerV2:
         """Compile the update's two loops whole, and the per-step networks that acting calls, in place
         (state-dict keys unchanged).
 
-        The world model's loss (encoder, the RSSM's observe loop, decoder, heads) and the imagination rollout
-        are each one graph, so the small ops of every step fuse (on a CPU the networks compiled alone gained 2%;
-        benchmarks/RESULTS.md, issue 19). Random numbers come from the eager generator (inductor's
-        ``fallback_random``), so a compiled agent draws what an eager one draws.
+        The reference world model's loss (encoder, the RSSM's observe loop, decoder, heads) and the imagination
+        rollout are each one graph (``fullgraph``: a graph break raises rather than splitting the update), so the
+        small ops of every step fuse and CUDA graphs can take each whole. Random numbers come from the eager
+        generator (inductor's ``fallback_random``), so a compiled agent draws what an eager one draws.
 
-        Shapes are static (``dynamic=False``): a batch of another size compiles anew. With torch's automatic
-        dynamic shapes the second size traced symbolic ones, and the truncated normal's ``torch.rand`` over a
-        symbolic shape failed to trace, so the update raised (and the paper preset's first one already did: the
-        networks' shared ``forward`` is traced at several sizes within one update).
+        Shapes are static (``dynamic=False``): a batch of another size compiles anew. Automatic dynamic shapes
+        traced the truncated normal's ``torch.rand`` over a symbolic shape, which failed.
         """
         wm, ac = self.world_model, self.actor_critic
-        options = {"fallback_random": True}
-        wm.loss = torch.compile(wm.loss, options=options, dynamic=False)  # type: ignore[method-assign]
-        ac.imagine = torch.compile(ac.imagine, options=options, dynamic=False)  # type: ignore[method-assign]
+        # torch.compile takes a mode or options, not both: the mode's options, with the eager generator's draws
+        mode_options = {} if self.config.compile_mode == "default" else list_mode_options(self.config.compile_mode)
+        options = {**mode_options, "fallback_random": True}
+        whole = {"options": options, "dynamic": False, "fullgraph": True}
+        wm.loss = torch.compile(wm.loss, **whole)  # type: ignore[method-assign]
+        ac.imagine = torch.compile(ac.imagine, **whole)  # type: ignore[method-assign]
         for module in (
             wm.encoder,
             wm.decoder,
@@ -332,7 +338,7 @@ class DreamerV2:
             ac.slow_critic,
         ):
             if module is not None:
-                module.compile(dynamic=False)
+                module.compile(dynamic=False, options=options)
 
 
 class PolicyCopy:

@@ -64,7 +64,7 @@ class PenaltyDreamerV2(DreamerV2):
             metrics.update(self.train_ensemble(post))
         else:
             with torch.no_grad(), self._autocast():
-                post, _, _ = self.world_model.observe(batch_t)
+                post, _, _ = self.model_path.observe(batch_t)
             post = {key: value.detach() for key, value in post.items()}
             seen: dict[str, Tensor] = {}
 

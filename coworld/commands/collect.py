@@ -166,12 +166,14 @@ COLLECTORS: dict[str, Callable[[dict[str, Any]], None]] = {
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 @interrupt.at_safe_points
 def collect(**options: Any) -> None:
-    """Collect an offline dataset of TASK; each episode is written as soon as it ends.
+    """Collect an offline dataset in a task.
+
+    Each episode of TASK is written as soon as it ends.
 
     By default DreamerV2 learns online in TASK and everything it experiences becomes a medium-replay dataset,
     until its evaluation return reaches --stop-return or --max-steps rows exist. With --policy random, uniform
     actions make a random-quality dataset. Stopped (Ctrl-C, SIGTERM, a kill, a full disk), rerun with --resume to
-    continue.
+    continue. Docs: datasets/README.md (the format), docs/usage.md.
     """
     if options["policy"] == "random" and options["quality"] is not None:
         raise CoworldError("--quality is for --policy dreamerv2; random collection makes a 'random' dataset")

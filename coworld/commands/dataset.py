@@ -17,7 +17,11 @@ from coworld.text import count
 
 @click.group()
 def dataset() -> None:
-    """Inspect, check, merge, import (V-D4RL) and export (Minari, npz) offline datasets (HDF5, format v1)."""
+    """Inspect, check, merge, import and export datasets.
+
+    Offline datasets in HDF5, format v1: info, verify, merge, import (V-D4RL), export (Minari, npz episodes).
+    Docs: datasets/README.md (the format, field by field), docs/usage.md.
+    """
 
 
 @dataset.command()

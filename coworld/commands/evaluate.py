@@ -8,7 +8,7 @@ from pathlib import Path
 import click
 
 from coworld import interrupt
-from coworld.commands.options import SEED, count_type, input_path, output_file, threads_option
+from coworld.commands.options import SEED, count_type, distinct_outputs, input_path, output_file, threads_option
 
 
 @click.command("eval")
@@ -24,15 +24,18 @@ from coworld.commands.options import SEED, count_type, input_path, output_file, 
 @click.option("--device", type=click.Choice(["auto", "cpu", "cuda"]), default="auto", show_default=True)
 @interrupt.at_safe_points
 def evaluate(ckpt, episodes, workers, seed, video, video_episodes, out, task, device) -> None:
-    """Mean ± std return (and success rate on Meta-World) of a trained policy, plus the value check.
+    """Evaluate a trained run: return and value check.
 
-    The results are printed before they are written: a location that cannot be written loses nothing.
+    Mean ± std return (and success rate on Meta-World) of a trained policy, plus the value check. The results are
+    printed before they are written: a location that cannot be written loses nothing. Docs: docs/usage.md,
+    "Evaluation".
     """
     from coworld.envs.vector import sensible_workers
     from coworld.errors import CoworldError
     from coworld.storage import check_writable, write_text_atomically
     from coworld.training.evaluate import evaluate as run_eval
     from coworld.training.evaluate import load_trained_agent, write_video
+    from coworld.viz.media import VIDEO_SUFFIXES, output_kind
 
     workers, note = sensible_workers(workers, episodes)
     if note:
@@ -40,7 +43,9 @@ def evaluate(ckpt, episodes, workers, seed, video, video_episodes, out, task, de
     run_dir = Path(ckpt) if Path(ckpt).is_dir() else Path(ckpt).parent
     out_path = Path(out) if out else run_dir / "eval.json"
     check_writable(out_path.parent, "--out")
-    if video:
+    if video:  # everything the end of the evaluation writes is checked before it starts
+        distinct_outputs({"--out": out_path, "--video": Path(video)})
+        output_kind(video, VIDEO_SUFFIXES)
         check_writable(Path(video).parent, "--video")
     with interrupt.explain(lambda: "no results were written (an evaluation does not resume); rerun the same command"):
         agent, info, config = load_trained_agent(Path(ckpt), device=device)

@@ -43,7 +43,7 @@ def threads_option(command: F) -> F:
         expose_value=False,
         callback=_set_threads,
         help=f"CPU threads torch uses [default: OMP_NUM_THREADS if set, else {DEFAULT_THREADS}: safe on a busy"
-        " machine; see the README's 'Measured' before raising it].",
+        " machine; see docs/performance.md before raising it].",
     )(command)
 
 

@@ -12,7 +12,9 @@ from coworld.text import count
 @click.argument("root", type=input_path(file_okay=False))
 @click.option("--out", type=output_folder(), default=None, help="Where to write [default: ROOT].")
 def report(root, out) -> None:
-    """Write report.md, results.csv and PNG figures for every run folder under ROOT.
+    """Tables and figures from a folder of runs.
+
+    Writes report.md, results.csv and PNG figures for every run folder under ROOT. Docs: docs/reproducing.md.
 
     ROOT is a `coworld sweep` folder (finished or not) or any folder holding runs made by `coworld train`.
     """

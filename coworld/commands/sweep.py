@@ -20,7 +20,9 @@ from coworld.training.train import ALGOS
 @click.option(
     "--ablation", is_flag=True, help="Figure 4(a): CoWorld with each term off in turn (alone, or on a --table)."
 )
-@click.option("--grid", "grid_file", type=input_path(dir_okay=False), help="A TOML grid file (see the README).")
+@click.option(
+    "--grid", "grid_file", type=input_path(dir_okay=False), help="A TOML grid file (see docs/reproducing.md)."
+)
 @click.option("--pairs", help="SOURCE:TARGET[,SOURCE:TARGET...], e.g. walker_walk:walker_uphill.")
 @click.option("--algos", help=f"Comma-separated algorithms: {','.join(ALGOS)}.")
 @click.option("--seeds", type=count_type(1, MAX_SEEDS), help="Seeds 0..N-1 of every run.")
@@ -63,7 +65,10 @@ def sweep(
     progress,
     interval,
 ) -> None:
-    """Run a grid of runs (pairs x algorithms x seeds), each collect -> train -> eval, in --dir.
+    """Run a paper table or a grid of runs.
+
+    A grid of runs (pairs x algorithms x seeds), each collect -> train -> eval, in --dir. Docs:
+    docs/reproducing.md (the tables, Ray, grid files).
 
     \b
     coworld sweep --table toy --dir sweeps/toy --jobs 2              # the CPU table: half an hour on 2 cores

@@ -14,8 +14,11 @@ from coworld.training.train import ALGOS, NEEDS_SOURCE
 
 @click.command("tasks")
 def tasks() -> None:
-    """List every task (with its reference return and medium level), the source -> target pairs, and which
-    algorithms need a source task."""
+    """List the tasks, their returns and the source -> target pairs.
+
+    Every task (with its reference return and medium level), the source -> target pairs, and which algorithms need
+    a source task. Docs: docs/usage.md, "Tasks".
+    """
     header = ("task", "family", "actions", "episode", "repeat", "random", "reference", "medium", "modification")
     rows = [
         (
@@ -73,7 +76,10 @@ def _number(value: float | None) -> str:
 @click.option("--seed", default=0, show_default=True, type=SEED, help="Seed of the env and the random actions.")
 @click.option("--image-size", default=64, show_default=True, type=count_type(8, 1024), help="Frame side in pixels.")
 def render(task_name: str, out_dir: Path, frames: int, seed: int, image_size: int) -> None:
-    """Save frames of one random-policy episode as PNG files <task>_<step>.png."""
+    """Save one random episode's frames as PNG files.
+
+    The files are <task>_<step>.png under --out. Docs: docs/usage.md, "Tasks".
+    """
     import imageio.v3 as iio
 
     from coworld.envs import make

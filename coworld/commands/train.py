@@ -51,13 +51,19 @@ RESUME = "rerun the same command to resume"
     help="Config override, e.g. --set coworld.align=false (repeatable).",
 )
 @threads_option
+@click.option(
+    "--force",
+    is_flag=True,
+    help="Start the run folder over: what training wrote there (checkpoint, metrics, logs) is removed first.",
+)
 @click.option("--progress/--no-progress", default=True, help="Progress bars.")
 @interrupt.at_safe_points
-def train(target, source, dataset, algo, preset, logdir, seed, device, overrides, progress) -> None:
-    """Train on a fixed target dataset (CoWorld and dreamerv2-finetune also learn online in --source).
+def train(target, source, dataset, algo, preset, logdir, seed, device, overrides, force, progress) -> None:
+    """Train CoWorld or a baseline on a dataset.
 
+    Learns from a fixed target dataset (CoWorld and dreamerv2-finetune also learn online in --source).
     Rerunning the same command on the same --logdir resumes from the last checkpoint (also after Ctrl-C, SIGTERM,
-    a kill or a full disk).
+    a kill or a full disk). Docs: docs/algorithms.md (what each algorithm computes), docs/usage.md.
     """
     from coworld.storage import check_writable
     from coworld.training.train import check_job, run_job
@@ -75,6 +81,7 @@ def train(target, source, dataset, algo, preset, logdir, seed, device, overrides
         seed=seed,
         device=device,
         overrides=overrides,
+        force=force,
     )
     check_writable(job.logdir, "--logdir")
     for warning in job.warnings:
@@ -83,6 +90,8 @@ def train(target, source, dataset, algo, preset, logdir, seed, device, overrides
     click.echo(f"train {algo} on {job.dataset} ({target}, {kind}); run folder {job.logdir}")
     if job.resume and (job.logdir / "checkpoint.pt").exists():
         click.echo(f"resuming from {job.logdir / 'checkpoint.pt'}")
+    if job.start_over and job.logdir.exists():
+        click.echo(f"--force: starting {job.logdir} over")
     try:
         with interrupt.explain(lambda: f"{_kept(job.logdir)}; {RESUME}"):
             summary = run_job(job, progress=progress)

@@ -33,7 +33,11 @@ MAX_PERPLEXITY = 1_000.0
 
 @click.group()
 def viz() -> None:
-    """Pictures of what the models predict and encode, and of what a dataset holds."""
+    """Pictures of predictions, latents and datasets.
+
+    What the models predict and encode, and what a dataset holds. Docs: docs/usage.md, "Seeing inside the
+    models".
+    """
 
 
 @viz.command()

@@ -8,8 +8,6 @@ reduce them and apply the config's scales in one place.
 
 from __future__ import annotations
 
-from typing import Any
-
 import torch
 from torch import Tensor
 
@@ -26,46 +24,15 @@ __all__ = [
 ]
 
 
-class _HalfSquaredError(torch.autograd.Function):
-    """``0.5 * sum((pred - target)^2)`` over the last three dimensions, with the gradient ``pred - target`` kept
-    from the forward pass: in the inputs' memory order, the sum of squares as the square of a vector norm (one
-    reading pass, where squaring then summing writes and reads a temporary). (``F.mse_loss``'s backward first
-    zero-fills a contiguous tensor, which the channels-last convolution before it then copies back.)"""
+def image_loss(pred: UnitGaussian | Tensor, target: Tensor) -> Tensor:
+    """Image negative log-likelihood under a unit-variance Gaussian: ``0.5 * sum_{C,H,W} (pred - target)^2``
+    (``-UnitGaussian.log_prob``, its constant ``0.5 log(2 pi)`` per pixel dropped).
 
-    @staticmethod
-    def forward(ctx: Any, pred: Tensor, target: Tensor, offset: float) -> Tensor:
-        if target.dtype == torch.uint8:  # pixels, scaled as preprocess_image does: pred - offset - (t / 255 - 0.5)
-            diff = target.to(pred.dtype)  # the one new image-sized tensor; the rest runs in place on it
-            torch.sub(pred, diff, alpha=1 / 255, out=diff)
-            if offset != 0.5:
-                diff.add_(0.5 - offset)
-        else:
-            diff = pred - target if offset == 0.0 else (pred - target).sub_(offset)
-        ctx.save_for_backward(diff)
-        return 0.5 * torch.linalg.vector_norm(diff, dim=(-3, -2, -1)).square()
-
-    @staticmethod
-    def backward(ctx: Any, grad: Tensor) -> tuple[Tensor | None, Tensor | None, None]:
-        (diff,) = ctx.saved_tensors
-        scale = grad[..., None, None, None]
-        if ctx.needs_input_grad[1]:
-            grad_pred = diff * scale
-            return grad_pred, -grad_pred, None
-        return diff.mul_(scale), None, None  # nothing reads the difference again: no second image-sized tensor
-
-
-def image_loss(pred: UnitGaussian | Tensor, target: Tensor, offset: float = 0.0) -> Tensor:
-    """Image negative log-likelihood under a unit-variance Gaussian: ``0.5 * sum_{C,H,W} (pred - target)^2``.
-
-    ``pred`` is the decoder's mean image (or its :class:`UnitGaussian`), ``(B, T, C, H, W)``, plus ``offset``;
-    ``target`` the observed image scaled to ``[-0.5, 0.5]``, or its uint8 pixels (scaled here the same way, in the
-    subtraction), same shape (or both as their phases, e.g. ``(B, T, 16 C, H / 4, W / 4)``: the sum is the same).
-    Returns ``(B, T)``; the constant ``0.5 * log(2 pi)`` per pixel is dropped. (``UnitGaussian.log_prob``'s value,
-    computed in one pass over the pixels each way instead of five: images are the largest tensors of a world-model
-    update. A mean plus 0.5 against uint8 pixels, as the world model passes it, spares the pass that adds 0.5.)
+    ``pred`` is the decoder's mean image (or its :class:`UnitGaussian` over the last three dimensions),
+    ``(B, T, C, H, W)``; ``target`` the observed image as the encoder reads it, the same shape. Returns ``(B, T)``.
     """
     mean = pred.mean if isinstance(pred, UnitGaussian) else pred
-    return _HalfSquaredError.apply(mean.float(), target if target.dtype == torch.uint8 else target.float(), offset)
+    return -UnitGaussian(mean.float(), event_dims=3).log_prob(target.float())
 
 
 def reward_loss(pred: UnitGaussian | TwoHotSymlog | Tensor, target: Tensor) -> Tensor:

@@ -4,8 +4,10 @@
 * :mod:`~coworld.models.distributions`: straight-through categorical, truncated/tanh normal, unit Gaussian;
 * :mod:`~coworld.models.rssm`: the recurrent state-space model with discrete latents;
 * :mod:`~coworld.models.world_model`: encoder + RSSM + decoder + reward/discount heads and their loss;
-* :mod:`~coworld.models.actor_critic`: imagination, lambda-returns, actor and critic losses, slow critic;
-* :mod:`~coworld.models.autotune`: the fastest of equivalent forms of an operation on this machine.
+* :mod:`~coworld.models.actor_critic`: imagination, lambda-returns, actor and critic losses, slow critic.
+
+These are the reference: plain PyTorch modules, their architecture chosen by the config. A fast path that computes
+the same model in other forms lives in :mod:`coworld.backends` and reads these modules' weights.
 
 Import from the submodules (this package re-exports nothing, so :mod:`coworld.losses.dreamer` can import
 :mod:`~coworld.models.distributions` without a cycle).

@@ -34,10 +34,6 @@ __all__ = [
 
 _LOG_SQRT_2PI = 0.5 * math.log(2.0 * math.pi)
 
-_SHORT_LAST_DIM = 16
-"""float32 lanes of an AVX-512 register: PyTorch's CPU (log-)softmax along a last dimension shorter than this is
-several times slower than the same reduction along the first dimension (benchmarks/update_ops.py)."""
-
 
 def exponential_noise(
     shape: tuple[int, ...], device: torch.device | str | None = None, generator: torch.Generator | None = None
@@ -45,8 +41,8 @@ def exponential_noise(
     """Standard exponential draws ``(shape)``, float32: the numbers ``torch.empty(shape).exponential_()`` draws.
 
     On a CPU, PyTorch's ``exponential_`` takes ``-log1p(-u)`` of one float64 uniform ``u`` per number, one number
-    at a time (about 19 ns each on one core); the same formula over a vectorised float64 ``uniform_`` of the same
-    generator gives the same numbers bit for bit (a test checks it), 2.8x faster. Elsewhere, ``exponential_``.
+    at a time; the same formula over a vectorised float64 ``uniform_`` of the same generator gives the same numbers
+    bit for bit (a test checks it), faster. Elsewhere, ``exponential_``.
     """
     if torch.device("cpu" if device is None else device).type != "cpu":
         return torch.empty(shape, device=device).exponential_(generator=generator)
@@ -54,31 +50,13 @@ def exponential_noise(
     return uniform.neg_().log1p_().neg_().to(torch.float32)
 
 
-_SMALL = 1024
-"""Below this many numbers the copy costs more than it saves: ``(8, 8, 8)`` is faster plain; at ``(16, 8, 8)``, the
-RSSM's posterior in a batch of 16 sequences, the two are about even (0.95-1.05x in two runs), and from
-``(64, 8, 8)`` up the copy is 2x and more (benchmarks/update_ops.py)."""
-
-
-def _classes_first(x: Tensor) -> bool:
-    """Whether :func:`softmax` and :func:`log_softmax` reduce ``x`` over a copy with its classes first."""
-    short = x.ndim >= 2 and x.shape[-1] < _SHORT_LAST_DIM and x.shape[-2] > 1
-    return x.device.type == "cpu" and short and x.numel() >= _SMALL
-
-
 def softmax(x: Tensor) -> Tensor:
-    """``torch.softmax(x, -1)``; on a CPU with fewer than 16 classes (DreamerV2's 8 x 8 latents of the small
-    presets), computed along dimension 0 of a copy with the classes first, where the reduction runs across whole
-    vector registers of the other dimensions, and returned as a view with the classes last again."""
-    if _classes_first(x):
-        return torch.softmax(x.movedim(-1, 0).contiguous(), 0).movedim(0, -1)
+    """Class probabilities ``torch.softmax(x, -1)``."""
     return torch.softmax(x, -1)
 
 
 def log_softmax(x: Tensor) -> Tensor:
-    """``torch.log_softmax(x, -1)``, computed as :func:`softmax` is."""
-    if _classes_first(x):
-        return torch.log_softmax(x.movedim(-1, 0).contiguous(), 0).movedim(0, -1)
+    """Normalised log-probabilities ``torch.log_softmax(x, -1)``."""
     return torch.log_softmax(x, -1)
 
 
@@ -199,7 +177,7 @@ def one_hot_race(probs: Tensor, noise: Tensor) -> Tensor:
     """The one-hot class ``argmax(probs / noise)`` over the last dimension, contiguous, in ``probs``' dtype (no
     gradient): :meth:`OneHotCategorical.rsample`'s draw from exponential ``noise`` of the same shape."""
     race = torch.empty(probs.shape, device=probs.device)  # contiguous: argmax along a strided dim is slow
-    # max's indices are argmax's (the first of equal values), and 1.4x faster at (512, 8, 8) (update_ops.py)
+    # max's indices are argmax's (the first of equal values), and faster
     index = torch.div(probs.float(), noise, out=race).max(dim=-1, keepdim=True).indices
     # F.one_hot's values, without its checks of the indices' range (two more reductions)
     return torch.zeros(probs.shape, dtype=probs.dtype, device=probs.device).scatter_(-1, index, 1.0)

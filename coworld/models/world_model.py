@@ -20,29 +20,16 @@ from torch import Tensor, nn
 from coworld.config import WorldModelConfig
 from coworld.losses.dreamer import discount_loss, image_loss, kl_balanced_loss, reward_loss
 from coworld.models.distributions import TWOHOT_BINS, Bernoulli, TwoHotSymlog, UnitGaussian, head_distribution
-from coworld.models.networks import MLP, ConvDecoder, ConvEncoder, check_image_shape, space_to_depth
+from coworld.models.networks import MLP, ConvDecoder, ConvEncoder, check_image_shape
 from coworld.models.rssm import RSSM, State
 
-__all__ = ["DiscountHead", "ScalarHead", "WorldModel", "preprocess_image", "preprocess_phases"]
+__all__ = ["DiscountHead", "ScalarHead", "WorldModel", "preprocess_image"]
 
 
-def preprocess_image(image: Tensor) -> Tensor:
-    """uint8 ``(..., H, W, C)`` to float32 ``(..., C, H, W)`` in ``[-0.5, 0.5]``.
-
-    The result keeps the input's memory order (channels last), which the encoder's convolutions read fastest;
-    the scaling runs in place on the one new float tensor.
-    """
-    return image.movedim(-1, -3).to(torch.float32, copy=True).div_(255.0).sub_(0.5)
-
-
-def preprocess_phases(image: Tensor) -> Tensor:
-    """uint8 ``(..., H, W, C)`` to the float32 2 x 2 phases ``(..., 4 C, H / 2, W / 2)`` in ``[-0.5, 0.5]``.
-
-    :func:`~coworld.models.networks.space_to_depth` of :func:`preprocess_image`'s values (channels last in
-    memory), which :meth:`ConvEncoder.from_phases` takes. The rearrangement runs on the uint8 bytes, before the one
-    float copy.
-    """
-    return preprocess_image(space_to_depth(image))
+def preprocess_image(image: Tensor, dtype: torch.dtype = torch.float32) -> Tensor:
+    """uint8 pixels ``(..., H, W, C)`` to the float images ``(..., C, H, W)`` in ``[-0.5, 0.5]`` that the encoder
+    reads and the decoder predicts (DreamerV2's scaling). The one place pixels are scaled."""
+    return image.movedim(-1, -3).to(dtype) / 255.0 - 0.5
 
 
 class ScalarHead(nn.Module):
@@ -93,7 +80,8 @@ class WorldModel(nn.Module):
         self.action_size = action_size
         self.image_shape = tuple(image_shape)
         channels = image_shape[2]
-        self.encoder = ConvEncoder(channels=channels, depth=config.cnn_depth)
+        conv = {"channels": channels, "depth": config.cnn_depth, "act": config.act, "norm": config.norm}
+        self.encoder = ConvEncoder(kernels=config.encoder_kernels, **conv)
         self.rssm = RSSM(
             embed_size=self.encoder.embed_size,
             action_size=action_size,
@@ -102,10 +90,14 @@ class WorldModel(nn.Module):
             stoch=config.stoch,
             classes=config.classes,
             unimix=config.unimix,
+            act=config.act,
+            norm=config.norm,
+            gru_bias=config.gru_bias,
+            gru_eps=config.gru_eps,
         )
         self.feat_size = self.rssm.feat_size
         """Length of the features ``D + S * K``."""
-        self.decoder = ConvDecoder(feat_size=self.feat_size, channels=channels, depth=config.cnn_depth)
+        self.decoder = ConvDecoder(feat_size=self.feat_size, kernels=config.decoder_kernels, **conv)
         head = {"units": config.mlp_units, "layers": config.mlp_layers, "norm": config.mlp_norm, "act": config.mlp_act}
         self.reward_head = ScalarHead(feat_size=self.feat_size, dist=config.reward_dist, **head)
         if config.zero_init_reward:
@@ -116,58 +108,35 @@ class WorldModel(nn.Module):
 
     def encode(self, image: Tensor) -> Tensor:
         """uint8 images ``(..., H, W, C)`` -> embeddings ``(..., E)``."""
-        return self.encoder(preprocess_image(image))
+        return self.encoder(preprocess_image(image, self.dtype))
+
+    @property
+    def dtype(self) -> torch.dtype:
+        """The weights' dtype (float32; float64 where a test or :mod:`coworld.backends`' check makes it so)."""
+        return self.decoder.linear.weight.dtype
 
     def features(self, state: State) -> Tensor:
         """RSSM state -> features ``(..., D + S * K)``."""
         return self.rssm.features(state)
 
-    def prepare(self, batch: dict[str, Tensor]) -> dict[str, Tensor]:
-        """The batch with its images laid out as :meth:`loss` and :meth:`observe` read them, work that depends on
-        no weight (so it can run ahead, on another thread, while an update runs; :mod:`coworld.data.prefetch`).
-
-        ``image`` ``(B, T, H, W, C)`` is replaced by ``phases``, its 2 x 2 phases
-        (:func:`~coworld.models.networks.space_to_depth`, ``(B, T, H / 2, W / 2, 4 C)``), the encoder's input, and
-        ``target``, the uint8 pixels as the decoder ends: the same 2 x 2 phases, or theirs (4 x 4,
-        ``(B, T, H / 4, W / 4, 16 C)``); the other entries are kept. A prepared batch is returned as it is.
-
-        On a CPU ``phases`` holds the pixels' values as float32 (the encoder's first layer scales them), so the
-        update does not spend a pass over its largest input converting it (2.2-5.5 ms of a 238-249 ms update at the
-        tiny preset; benchmarks/prepared_phases_ab.py): the prefetch thread does it on the other core instead.
-        Elsewhere it stays uint8, a quarter of the memory, and the first layer converts it.
-        """
-        if "phases" in batch:
-            return batch
-        out = {key: value for key, value in batch.items() if key != "image"}
-        phases = space_to_depth(batch["image"])
-        out["target"] = space_to_depth(phases) if self.decoder.phase_levels == 2 else phases
-        out["phases"] = phases.float() if phases.device.type == "cpu" else phases
-        return out
-
-    def embed(self, batch: dict[str, Tensor]) -> Tensor:
-        """The encoder's embeddings ``(B, T, E)`` of a batch's images (or of a :meth:`prepare`-d batch's phases)."""
-        phases = batch["phases"] if "phases" in batch else space_to_depth(batch["image"])
-        return self.encoder.from_phases(phases.movedim(-1, -3), pixels=True)
-
     def observe(
         self, batch: dict[str, Tensor], state: State | None = None, generator: torch.Generator | None = None
     ) -> tuple[State, State, Tensor]:
-        """Encode a batch (or a :meth:`prepare`-d one) and run the posterior over it.
+        """Encode a batch's images and run the posterior over it.
 
         Returns ``(post, prior, embed)``: states with batch ``(B, T)`` (``deter (B, T, D)``,
         ``logits``/``stoch (B, T, S, K)``) and the embeddings ``(B, T, E)``. The recurrent state and the previous
         action are zeroed where ``is_first``; ``state`` (batch ``(B,)``) continues from an earlier chunk; ``generator``
         draws the latent samples' noise (torch's default generator if None).
-
-        The encoder reads the pixels' 2 x 2 phases (uint8, or their values as float, as :meth:`prepare` leaves them
-        on a CPU), which :meth:`ConvEncoder.from_phases` scales in its first layer.
         """
-        embed = self.embed(batch)
+        embed = self.encode(batch["image"])
         post, prior = self.rssm.observe(embed, batch["action"], batch["is_first"], state, generator)
         return post, prior, embed
 
-    def loss(self, batch: dict[str, Tensor]) -> tuple[dict[str, Tensor], dict[str, Any]]:
-        """DreamerV2's world-model loss on a batch (or a :meth:`prepare`-d one).
+    def loss(
+        self, batch: dict[str, Tensor], generator: torch.Generator | None = None
+    ) -> tuple[dict[str, Tensor], dict[str, Any]]:
+        """DreamerV2's world-model loss on a batch.
 
         Returns ``(terms, aux)``. ``terms`` holds unreduced ``(B, T)`` tensors: ``'image'``, ``'reward'``,
         ``'discount'`` (only with ``pred_discount``) negative log-likelihoods and ``'kl'``, the balanced KL before
@@ -178,22 +147,31 @@ class WorldModel(nn.Module):
             loss = image_scale * mean(image) + reward_scale * mean(reward)
                    + discount_scale * mean(discount) + kl_scale * kl_loss
         """
-        cfg = self.config
-        batch_size, length = batch["action"].shape[:2]
-        # A sum over pixels: the decoder's phases give the loss of the whole images, without interleaving them.
-        # The pixels' 2 x 2 phases: the encoder's first layer scales them, and the loss its uint8 target.
-        batch = self.prepare(batch)
-        target = batch["target"]
-        post, prior, embed = self.observe(batch)
+        post, prior, embed = self.observe(batch, generator=generator)
         feat = self.features(post)
+        image = UnitGaussian(self.decoder(feat).float(), event_dims=3)
         reward = self.reward_head(feat)
         terms: dict[str, Tensor] = {
-            "image": image_loss(self.decoder.phases(feat, offset=0.5).float(), target.movedim(-1, -3), offset=0.5),
+            "image": image_loss(image, preprocess_image(batch["image"], self.dtype)),
             "reward": reward_loss(reward, batch["reward"].float()),
         }
         if self.discount_head is not None:
             continuation = 1.0 - batch["is_terminal"].float()
             terms["discount"] = discount_loss(self.discount_head(feat), continuation)
+        return self.total_loss(terms, post, prior, embed, feat, reward)
+
+    def total_loss(
+        self,
+        terms: dict[str, Tensor],
+        post: State,
+        prior: State,
+        embed: Tensor,
+        feat: Tensor,
+        reward: UnitGaussian | TwoHotSymlog,
+    ) -> tuple[dict[str, Tensor], dict[str, Any]]:
+        """:meth:`loss`'s KL term and weighted sum, given its likelihood ``terms`` and what it computed them from."""
+        cfg = self.config
+        batch_size, length = post["deter"].shape[:2]
         kl_loss, terms["kl"] = kl_balanced_loss(
             post["logits"], prior["logits"], cfg.kl_balance, cfg.free_nats, normalised=True
         )

@@ -211,16 +211,19 @@ def _is_step(value: Any) -> bool:
 
 
 def normalized(task: str, value: float | None) -> float | None:
-    """(value - random_return) / (reference_return - random_return) of ``task``; None when not defined."""
+    """``100 * (value - random_return) / (reference_return - random_return)`` of ``task``, the scale ``coworld
+    eval`` and ``coworld dataset info`` print (:func:`coworld.data.reader.normalized_score`); None when not
+    defined."""
+    from coworld.data.reader import normalized_score
+
     if value is None:
         return None
     try:
         spec = envs.task_spec(task)
     except UnknownTaskError:
         return None
-    if spec.reference_return is None or spec.random_return is None or spec.reference_return == spec.random_return:
-        return None
-    return (value - spec.random_return) / (spec.reference_return - spec.random_return)
+    score = normalized_score(value, {"random_return": spec.random_return, "reference_return": spec.reference_return})
+    return None if score is None else float(score)
 
 
 def _mean(values: Any) -> float | None:
@@ -248,6 +251,12 @@ def load_result(run_dir: Path) -> RunResult:
     final = std = success = estimate = true = None
     episodes = None
     result = _json_object(run_dir / "eval.json", problems)
+    scored = (
+        result.get("extra", {}).get("algo") if result is not None and isinstance(result.get("extra"), dict) else None
+    )
+    if scored is not None and scored != info["algo"]:  # the evaluation of a checkpoint copied in from another run
+        problems.append(f"{run_dir / 'eval.json'}: an evaluation of a {scored} agent, but the run is {info['algo']}")
+        result = None
     if result is not None:
         try:
             returns = [float(r) for r in result["returns"]]

@@ -166,7 +166,7 @@ def results_table(results: Sequence[RunResult], *, variants: bool = False) -> st
                 row.append("—")
                 continue
             ci = iqm_interval(per_task)
-            row.append(f"{ci.point:.2f} [{ci.low:.2f}, {ci.high:.2f}]")
+            row.append(f"{ci.point:.1f} [{ci.low:.1f}, {ci.high:.1f}]")
         lines.append("| IQM normalized score [95% CI] | " + " | ".join(row) + " |")
     return "\n".join(lines)
 

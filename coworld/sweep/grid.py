@@ -28,9 +28,10 @@ from pathlib import Path
 from typing import Any
 
 from coworld import envs
+from coworld.budget import check_memory
 from coworld.config import PRESETS, make_config
 from coworld.errors import ConfigError, CoworldError
-from coworld.training.train import ALGOS, NEEDS_SOURCE
+from coworld.training.train import ALGOS, NEEDS_SOURCE, check_config
 
 COLLECT_POLICIES = ("dreamerv2", "random")
 QUALITIES = ("medium-replay", "medium", "expert")
@@ -160,9 +161,17 @@ class SweepSpec:
         self.data.check()
         for _, extra in self.variants:  # every run's config must build (unknown keys, bad values)
             make_config(self.preset, [*self.overrides, *extra])
+        for algo in self.algos:  # and pass what `train` requires of it (rules between keys, memory)
+            for name, extra in self.variants if algo == "coworld" else (("", ()),):
+                try:
+                    config = make_config(self.preset, [*self.overrides, *extra])
+                    for target in self.targets():
+                        check_config(algo, config, envs.task_spec(target).action_size)
+                except CoworldError as err:
+                    raise ConfigError(f"the {algo}{f' ({name})' if name else ''} runs: {err}") from None
         if self.data.policy == "dreamerv2":  # and the collector's: the same preset with the data's own --set
             try:
-                make_config(self.preset, self.data.overrides)
+                check_memory("dreamerv2", make_config(self.preset, self.data.overrides))
             except ConfigError as err:
                 raise ConfigError(f"data set: {err}") from None
         return self
@@ -275,7 +284,8 @@ def toy_table() -> SweepSpec:
     its world model, the fine-tuned one first pretrains in the source as CoWorld's source does), CURL, CURL+CQL
     and DrQ+BC 3,000 of their cheaper updates. CoWorld's source pretrains for 2,000 environment steps and makes 100
     updates per iteration. Each run ends with a 10-episode
-    evaluation. Measured on 2 shared CPU cores (README), before DrQ+BC and the two DreamerV2 variants joined:
+    evaluation. Measured on 2 shared CPU cores (docs/reproducing.md), before DrQ+BC and the two DreamerV2 variants
+    joined:
     one seed of the four others took about 16 CPU-minutes, CoWorld's run 7 of them; their 3 seeds fit in half an
     hour with ``--jobs 2``.
     """
@@ -412,7 +422,7 @@ _DATA_KEYS = {f.name for f in dataclasses.fields(DataSpec)} - {"overrides"} | {"
 
 
 def read_grid_file(path: str | Path) -> dict[str, Any]:
-    """Read a TOML grid file into keyword arguments of :func:`build_spec` (see the README for its keys)."""
+    """Read a TOML grid file into keyword arguments of :func:`build_spec` (see docs/reproducing.md for its keys)."""
     path = Path(path)
     import tomllib
 

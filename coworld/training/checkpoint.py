@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import os
 import random
+import warnings
+from collections.abc import Sequence
 from pathlib import Path
 from typing import IO, Any
 
@@ -69,21 +71,67 @@ class _Recording:
         self._f.flush()
 
 
-def load_checkpoint(path: str | os.PathLike[str], map_location: str | torch.device = "cpu") -> dict[str, Any]:
-    """Load a checkpoint written by :func:`save_checkpoint`; any problem raises CheckpointError."""
+def load_checkpoint(
+    path: str | os.PathLike[str],
+    map_location: str | torch.device = "cpu",
+    *,
+    keys: Sequence[str] = (),
+    mmap: bool = False,
+) -> dict[str, Any]:
+    """Load a checkpoint written by :func:`save_checkpoint`; any problem raises CheckpointError in one line: a
+    missing, truncated or foreign file, objects the weights-only loader refuses, or a dict lacking ``kind`` or one
+    of ``keys`` (the entries the caller reads). ``mmap``: map the tensors rather than read them (a check that
+    only looks at the entries)."""
     path = Path(path)
     if path.is_dir():
         path = path / CHECKPOINT_NAME
     if not path.is_file():
         raise CheckpointError(f"no checkpoint at {path}; pass the run folder or its {CHECKPOINT_NAME}")
     try:
-        state = torch.load(path, map_location=map_location, weights_only=True)
+        with warnings.catch_warnings():  # torch warns about what it is about to refuse; the refusal says it
+            warnings.simplefilter("ignore")
+            state = torch.load(path, map_location=map_location, weights_only=True, mmap=mmap)
     except Exception as err:  # torch raises many types for truncated or foreign files
-        reason = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
-        raise CheckpointError(f"checkpoint {path} is corrupt or not a coworld checkpoint ({reason[:120]})") from None
+        raise CheckpointError(
+            f"checkpoint {path} is corrupt or not a coworld checkpoint ({refusal_reason(err)}); nothing was run"
+        ) from None
     if not isinstance(state, dict) or "kind" not in state:
         raise CheckpointError(f"{path} is not a coworld checkpoint (no 'kind' entry)")
+    missing = [key for key in keys if key not in state]
+    if missing:
+        raise CheckpointError(
+            f"{path} is a damaged {state['kind']} checkpoint (no {', '.join(map(repr, missing))} entry); restore it"
+            " from a copy, or start the run over"
+        )
     return state
+
+
+_TORCH_ADVICE = ("Weights only load failed", "Please file an issue", "Check the documentation", "In PyTorch")
+
+
+def refusal_reason(err: BaseException, limit: int = 200) -> str:
+    """Why torch could not load a file, in whole words: the loader's own reason without torch's advice (which
+    suggests unpickling, never done here); at most ``limit`` characters, cut between words."""
+    lines = [line.strip() for line in str(err).splitlines() if line.strip()]
+    reasons = [line.split("WeightsUnpickler error:")[-1].strip() for line in lines]
+    reasons = [line for line in reasons if line and not line.startswith(_TORCH_ADVICE)]
+    reason = reasons[0] if reasons else (lines[0] if lines else type(err).__name__)
+    if len(reason) > limit:
+        reason = reason[:limit].rsplit(" ", 1)[0] + " ..."
+    return reason
+
+
+def load_agent_state(agent: Any, state: Any, path: Path, what: str) -> None:
+    """``agent.load_state_dict(state)``, with any mismatch (a missing or extra entry, a tensor of another shape)
+    raised as one CheckpointError line saying that ``path`` does not fit ``what`` (e.g. 'a drq-bc agent of this
+    config')."""
+    try:
+        agent.load_state_dict(state)
+    except (KeyError, RuntimeError, ValueError, TypeError, AttributeError, IndexError) as err:
+        reason = refusal_reason(err, 160) if str(err).strip() else type(err).__name__
+        if isinstance(err, KeyError):
+            reason = f"no {err} entry"
+        raise CheckpointError(f"{path} does not fit {what} ({reason}); use the run folder it came from") from None
 
 
 def rng_state() -> dict[str, Any]:

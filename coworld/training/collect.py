@@ -31,6 +31,7 @@ from coworld.storage import check_writable
 from coworld.training.logger import Logger
 from coworld.training.online import OnlineTrainer
 from coworld.training.run import collector_run_info, prepare_run_dir, preset_warnings, resolve_device, seed_everything
+from coworld.training.train import check_backend
 
 TRAINED_QUALITIES = ("medium-replay", "medium", "expert")
 
@@ -79,6 +80,7 @@ def collect_dreamerv2(
         raise CoworldError(f"the dreamerv2 collector makes {', '.join(TRAINED_QUALITIES)} datasets, not {quality!r}")
     spec = envs.task_spec(task)
     config = make_config(preset, [*overrides, f"seed={seed}", f"device={device}"])
+    check_backend(config, spec.action_size)
     out = Path(out)
     run_dir = out.with_name(out.name.removesuffix(".h5") + ".run")
     if out.is_dir():
@@ -100,7 +102,7 @@ def collect_dreamerv2(
     }
     for message in preset_warnings(preset, config.device) if warn is not None else ():
         warn(message)
-    resumed = prepare_run_dir(run_dir, config, info)
+    resumed = prepare_run_dir(run_dir, config, info, start_over=f"pass --force to start {out} and its agent over")
     seed_everything(config.seed)
     from coworld.agents.dreamerv2 import DreamerV2
 

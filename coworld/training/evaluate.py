@@ -281,27 +281,21 @@ def write_video(path: str | Path, episodes: Sequence[np.ndarray], fps: int = 30,
 def load_trained_agent(path: Path, device: str = "auto") -> tuple[Any, dict[str, Any], Any]:
     """Rebuild the agent of a run folder (or its checkpoint file) for evaluation.
 
-    Returns ``(agent, run_info, config)``; problems raise CheckpointError with one line.
+    The checkpoint must be what the folder says (its algorithm, tasks and config; :mod:`coworld.training.loading`),
+    so a result is never labelled with another run's algorithm. Returns ``(agent, run_info, config)``; problems raise
+    one CoworldError line.
     """
     from coworld.agents.factory import make_agent
-    from coworld.errors import CheckpointError
-    from coworld.training.checkpoint import CHECKPOINT_NAME, load_checkpoint
-    from coworld.training.run import load_run, resolve_device
+    from coworld.training.checkpoint import load_agent_state
+    from coworld.training.loading import load_run_checkpoint, open_run
+    from coworld.training.run import resolve_device
 
-    path = Path(path)
-    run_dir = path if path.is_dir() else path.parent
-    ckpt = path / CHECKPOINT_NAME if path.is_dir() else path
-    if not ckpt.exists():
-        raise CheckpointError(f"no checkpoint at {ckpt}; pass a run folder made by `coworld train` or its checkpoint")
-    config, info = load_run(run_dir)
-    state = load_checkpoint(ckpt)
+    _, ckpt, config, info = open_run(path)
+    state = load_run_checkpoint(ckpt, config, info)
     config = replace(config, device=device)
     torch_device = resolve_device(device)
     agent = make_agent(
         info["algo"], config=config, action_size=envs.task_spec(info["target"]).action_size, device=torch_device
     )
-    try:
-        agent.load_state_dict(state["agent"])
-    except (KeyError, RuntimeError, ValueError) as err:
-        raise CheckpointError(f"{ckpt} does not fit a {info['algo']} agent of this config ({str(err)[:100]})") from None
+    load_agent_state(agent, state["agent"], ckpt, f"a {info['algo']} agent of this config")
     return agent, info, config

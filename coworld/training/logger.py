@@ -7,11 +7,13 @@ TensorBoard (e.g. the open-loop prediction strips, ``openl/<task>``).
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import sys
+import threading
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -43,6 +45,7 @@ class Logger:
         if "tensorboard" in outputs:
             from torch.utils.tensorboard import SummaryWriter
 
+            _quiet_event_writer_threads()
             self._tb = SummaryWriter(str(self.logdir / "tb"))
         self._start = time.time()
 
@@ -60,9 +63,10 @@ class Logger:
             self._jsonl.write(json.dumps(record) + "\n")
             self._jsonl.flush()
         if self._tb is not None:
-            for key, value in scalars.items():
-                self._tb.add_scalar(key, value, step)
-            self._tb.flush()
+            with self._tensorboard_writes():
+                for key, value in scalars.items():
+                    self._tb.add_scalar(key, value, step)
+                self._tb.flush()
         shown = {k: v for k, v in scalars.items() if any(part in k for part in CONSOLE_KEYS)}
         if self._console and shown:
             text = "  ".join(f"{k} {v:.4g}" for k, v in sorted(shown.items()))
@@ -71,22 +75,59 @@ class Logger:
     def log_image(self, tag: str, image: Any, step: int) -> None:
         """Record a uint8 ``(H, W, 3)`` picture at ``step`` (TensorBoard only; the other outputs take scalars)."""
         if self._tb is not None:
-            self._tb.add_image(tag, image, step, dataformats="HWC")
-            self._tb.flush()
+            with self._tensorboard_writes():
+                self._tb.add_image(tag, image, step, dataformats="HWC")
+                self._tb.flush()
 
     def close(self) -> None:
         if self._jsonl is not None:
             self._jsonl.close()
             self._jsonl = None
         if self._tb is not None:
-            self._tb.close()
-            self._tb = None
+            tb, self._tb = self._tb, None
+            with self._tensorboard_writes():
+                tb.close()
+
+    @contextlib.contextmanager
+    def _tensorboard_writes(self) -> Iterator[None]:
+        """A write TensorBoard's writer thread could not make (a full disk) as one StorageError line naming the
+        folder; other errors as they are."""
+        from coworld.errors import StorageError
+        from coworld.storage import WRITE_ERRNOS, failure_errno, failure_reason
+
+        try:
+            yield
+        except OSError as err:
+            if failure_errno(err) not in WRITE_ERRNOS:
+                raise
+            reason = failure_reason(err)
+            raise StorageError(f"cannot write TensorBoard events in {self.logdir / 'tb'}: {reason}", reason) from None
 
     def __enter__(self) -> Logger:
         return self
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def _quiet_event_writer_threads() -> None:
+    """Keep TensorBoard's writer thread from printing a traceback for a write the system refused: the writer raises
+    the same error in the main thread at its next write or flush, where :class:`Logger` turns it into one line.
+    Installed once, around whatever ``threading.excepthook`` was; every other thread's error is shown as before."""
+    if getattr(threading.excepthook, "_coworld_quiet", False):
+        return
+    previous = threading.excepthook
+
+    def hook(args: threading.ExceptHookArgs) -> None:
+        from coworld.storage import WRITE_ERRNOS, failure_errno
+
+        writer_thread = type(args.thread).__name__ == "_AsyncWriterThread"
+        if writer_thread and isinstance(args.exc_value, OSError) and failure_errno(args.exc_value) in WRITE_ERRNOS:
+            return
+        previous(args)
+
+    hook._coworld_quiet = True  # type: ignore[attr-defined]
+    threading.excepthook = hook
 
 
 def read_metrics(logdir: str | Path) -> list[dict[str, Any]]:

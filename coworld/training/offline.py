@@ -21,10 +21,20 @@ from coworld import interrupt
 from coworld.config import to_dict
 from coworld.data.prefetch import prefetched, stop_prefetch
 from coworld.progress import progress_bar
-from coworld.training.checkpoint import CHECKPOINT_NAME, load_checkpoint, rng_state, save_checkpoint, set_rng_state
+from coworld.training.checkpoint import (
+    CHECKPOINT_NAME,
+    load_agent_state,
+    load_checkpoint,
+    rng_state,
+    save_checkpoint,
+    set_rng_state,
+)
 from coworld.training.evaluate import evaluate
 from coworld.training.logger import Logger, Rate
 from coworld.viz.training import log_open_loop
+
+CHECKPOINT_KEYS = ("agent", "updates", "last_eval", "rng")
+"""What an offline run's checkpoint holds beyond its kind (:meth:`OfflineTrainer.save`)."""
 
 SamplerFactory = Callable[[int], Iterator[dict[str, np.ndarray]]]
 
@@ -95,12 +105,14 @@ class OfflineTrainer:
         """Load the last checkpoint of this run folder, if any; True when resumed."""
         if not self.checkpoint_path.exists():
             return False
-        state = load_checkpoint(self.checkpoint_path, map_location=getattr(self.agent, "device", "cpu"))
+        state = load_checkpoint(
+            self.checkpoint_path, map_location=getattr(self.agent, "device", "cpu"), keys=CHECKPOINT_KEYS
+        )
         if state.get("kind") != self.kind:
             from coworld.errors import CheckpointError
 
             raise CheckpointError(f"{self.checkpoint_path} is a {state.get('kind')!r} checkpoint, not {self.kind!r}")
-        self.agent.load_state_dict(state["agent"])
+        load_agent_state(self.agent, state["agent"], self.checkpoint_path, f"a {self.kind} agent of this config")
         self.updates = int(state["updates"])
         self.last_eval = state["last_eval"]
         set_rng_state(state["rng"])

@@ -46,13 +46,22 @@ from coworld import envs, interrupt
 from coworld.config import Config, to_dict
 from coworld.data import DatasetWriter, open_dataset
 from coworld.progress import progress_bar
-from coworld.training.checkpoint import CHECKPOINT_NAME, load_checkpoint, rng_state, save_checkpoint, set_rng_state
+from coworld.training.checkpoint import (
+    CHECKPOINT_NAME,
+    load_agent_state,
+    load_checkpoint,
+    rng_state,
+    save_checkpoint,
+    set_rng_state,
+)
 from coworld.training.evaluate import evaluate
 from coworld.training.logger import Logger, Rate
 from coworld.training.replay import Replay
 from coworld.viz.training import log_open_loop
 
 CHECKPOINT_KIND = "dreamerv2-online"
+CHECKPOINT_KEYS = ("agent", "updates", "last_eval", "last_eval_step", "rng")
+"""What an online run's checkpoint holds beyond its kind (:meth:`OnlineTrainer.save`)."""
 ACT_SEED_OFFSET = 30_000
 """Acting's generator is seeded with ``seed + ACT_SEED_OFFSET`` (evaluation uses ``seed + 10_000``)."""
 STOP_WAIT_SECONDS = 5.0
@@ -202,8 +211,14 @@ class OnlineTrainer:
         self.steps = self.writer.num_steps
         if not self.checkpoint_path.exists():
             return None
-        state = load_checkpoint(self.checkpoint_path, map_location=getattr(self.agent, "device", "cpu"))
-        self.agent.load_state_dict(state["agent"])
+        state = load_checkpoint(
+            self.checkpoint_path, map_location=getattr(self.agent, "device", "cpu"), keys=CHECKPOINT_KEYS
+        )
+        if state["kind"] != CHECKPOINT_KIND:
+            from coworld.errors import CheckpointError
+
+            raise CheckpointError(f"{self.checkpoint_path} is a {state['kind']!r} checkpoint, not {CHECKPOINT_KIND!r}")
+        load_agent_state(self.agent, state["agent"], self.checkpoint_path, "an online dreamerv2 agent of this config")
         self.updates = int(state["updates"])
         self.last_eval = state["last_eval"]
         self.last_eval_step = int(state["last_eval_step"])

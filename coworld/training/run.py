@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import random
+import shutil
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -44,13 +45,21 @@ def resolve_device(name: str | torch.device) -> torch.device:
     return device
 
 
-def preset_warnings(preset: str, device: str) -> list[str]:
-    """A warning when the GPU-sized paper preset is about to run on a CPU."""
+def preset_warnings(preset: str, device: str, algo: str = "dreamerv2") -> list[str]:
+    """Warnings of a preset that does not size this run for this machine: the GPU-sized paper preset on a CPU, and
+    the cpu preset for a model-free baseline (it sizes the DreamerV2 family only)."""
+    if preset == "cpu" and algo in ("curl", "curl-cql", "drq-bc"):
+        section = "drqbc" if algo == "drq-bc" else "curl"
+        return [
+            f"the cpu preset sizes coworld and the dreamerv2 family only: {algo} runs at the paper's size here"
+            f" ({section}.updates, {section}.batch_size); pass --preset tiny for a small run, or size it with"
+            f" --set {section}.KEY=VALUE"
+        ]
     if preset != "paper" or resolve_device(device).type != "cpu":
         return []
     return [
         "the paper preset is sized for a GPU: on this CPU a paper-size update takes seconds, so a run takes weeks;"
-        " pass --preset tiny to try things on a CPU (README, 'Presets')"
+        " pass --preset cpu to learn on a CPU, or --preset tiny to try things in minutes (README, 'Presets')"
     ]
 
 
@@ -60,8 +69,13 @@ last): a folder holding any of these but no ``config.json`` was not described by
 damaged, and is refused rather than resumed. Other files (a sweep's record, notes) are left alone."""
 
 
-def check_run_dir(logdir: str | Path, config: Config, info: Mapping[str, Any]) -> bool:
-    """Whether ``logdir`` can hold this run, without writing anything.
+START_OVER = "pass a new --logdir, or --force to start this one over"
+"""How ``coworld train`` starts a run folder of other settings over; the collector names its own options."""
+
+
+def check_run_dir(logdir: str | Path, config: Config, info: Mapping[str, Any], start_over: str = START_OVER) -> bool:
+    """Whether ``logdir`` can hold this run, without writing anything; every refusal ends with ``start_over``, the
+    options of the calling command that start afresh.
 
     Returns:
         True when the folder already holds this run (the caller resumes from its checkpoint), False when it is
@@ -72,39 +86,35 @@ def check_run_dir(logdir: str | Path, config: Config, info: Mapping[str, Any]) -
         training artefacts that no ``config.json`` describes (a checkpoint copied in, say).
     """
     logdir = Path(logdir)
-    config_path, info_path = logdir / "config.json", logdir / "run.json"
+    config_path = logdir / "config.json"
     info = json.loads(json.dumps(dict(info)))  # normalise tuples and paths the way JSON reads them back
     if logdir.exists() and not logdir.is_dir():
-        raise CoworldError(f"{logdir} is a file, not a run folder; pass a new --logdir")
+        raise CoworldError(f"{logdir} is a file, not a run folder; {start_over}")
     if not config_path.exists():
         found = [name for name in RUN_ARTEFACTS if (logdir / name).exists()]
         if found:
             raise CoworldError(
                 f"{logdir} holds {', '.join(found)} but no config.json, so it is not a run folder coworld train"
-                " can resume (or it was damaged); nothing was changed: pass a new --logdir"
+                f" can resume (or it was damaged); nothing was changed: {start_over}"
             )
         return False
-    try:
-        saved = from_dict(json.loads(config_path.read_text()))
-        saved_info = json.loads(info_path.read_text()) if info_path.exists() else {}
-    except (json.JSONDecodeError, ConfigError, OSError) as err:
-        raise CoworldError(f"{config_path} is unreadable ({err}); nothing was changed: pass a new --logdir") from None
+    saved, saved_info = load_run(logdir, fix=f"nothing was changed: {start_over}")
     if saved != config:
         diff = first_difference(to_dict(saved), to_dict(config))
         raise CoworldError(
-            f"{logdir} holds a run with other settings ({diff}); rerun with the same settings to resume"
-            " or pass a new --logdir"
+            f"{logdir} holds a run with other settings ({diff}); rerun with the same settings to resume,"
+            f" or {start_over}"
         )
     for key, value in info.items():
         if key in saved_info and saved_info[key] != value:
             raise CoworldError(
                 f"{logdir} holds a run with {key}={saved_info[key]!r}, not {value!r};"
-                " rerun with the same settings to resume or pass a new --logdir"
+                f" rerun with the same settings to resume, or {start_over}"
             )
     return True
 
 
-def prepare_run_dir(logdir: str | Path, config: Config, info: Mapping[str, Any]) -> bool:
+def prepare_run_dir(logdir: str | Path, config: Config, info: Mapping[str, Any], start_over: str = START_OVER) -> bool:
     """Create ``logdir`` with its config and run description, or check an existing one matches.
 
     Everything is checked (:func:`check_run_dir`) before anything is written; each file is written whole under
@@ -113,7 +123,7 @@ def prepare_run_dir(logdir: str | Path, config: Config, info: Mapping[str, Any])
     Returns:
         True when the folder already held this run (the caller resumes from its checkpoint).
     """
-    if check_run_dir(logdir, config, info):
+    if check_run_dir(logdir, config, info, start_over):
         return True
     logdir = Path(logdir)
     logdir.mkdir(parents=True, exist_ok=True)
@@ -123,23 +133,61 @@ def prepare_run_dir(logdir: str | Path, config: Config, info: Mapping[str, Any])
     return False
 
 
+def clear_run_dir(logdir: str | Path) -> None:
+    """Remove what training wrote in ``logdir`` (its description and :data:`RUN_ARTEFACTS`), so the run starts over;
+    other files in the folder (notes, a sweep's record) are left alone."""
+    logdir = Path(logdir)
+    for name in ("config.json", "run.json", *RUN_ARTEFACTS):  # the description first: a cut removal is no run
+        path = logdir / name
+        if path.is_dir() and not path.is_symlink():
+            shutil.rmtree(path)
+        elif path.exists() or path.is_symlink():
+            path.unlink()
+
+
 def collector_run_info(task: str, preset: str) -> dict[str, Any]:
     """The run description of the online DreamerV2 agent that ``coworld collect --policy dreamerv2`` trains: a
     dreamerv2 run like any other (``online`` says it learned in its environment, not from a dataset)."""
     return {"algo": "dreamerv2", "source": None, "target": task, "task": task, "preset": preset, "online": True}
 
 
-def load_run(logdir: str | Path) -> tuple[Config, dict[str, Any]]:
-    """The config and run description saved by :func:`prepare_run_dir` (see :func:`run_description`)."""
+def load_run(logdir: str | Path, fix: str = "") -> tuple[Config, dict[str, Any]]:
+    """The config and run description saved by :func:`prepare_run_dir` (see :func:`run_description`).
+
+    A missing, unreadable or damaged ``config.json`` or ``run.json`` (not UTF-8, not JSON, not an object, a config
+    that does not build, a description without its algorithm) raises one CoworldError line naming
+    the file, ending with ``fix`` when given.
+    """
     logdir = Path(logdir)
+    if not (logdir / "config.json").is_file() or not (logdir / "run.json").is_file():
+        raise CoworldError(f"{logdir} is not a coworld run folder (no config.json / run.json)")
+    config_data = read_json_object(logdir / "config.json", fix)
     try:
-        config = from_dict(json.loads((logdir / "config.json").read_text()))
-        info = json.loads((logdir / "run.json").read_text())
-    except FileNotFoundError:
-        raise CoworldError(f"{logdir} is not a coworld run folder (no config.json / run.json)") from None
-    except (json.JSONDecodeError, ConfigError) as err:
-        raise CoworldError(f"the run description in {logdir} is unreadable ({err})") from None
-    return config, run_description(info)
+        config = from_dict(config_data)
+    except ConfigError as err:
+        raise CoworldError(_damaged(logdir / "config.json", f"a config that does not build: {err}", fix)) from None
+    info = run_description(read_json_object(logdir / "run.json", fix))
+    if not isinstance(info.get("algo"), str):
+        raise CoworldError(_damaged(logdir / "run.json", "no algo: it does not say what was trained", fix))
+    return config, info
+
+
+def read_json_object(path: Path, fix: str = "") -> dict[str, Any]:
+    """The JSON object in ``path``; bytes that are not UTF-8, text that is not JSON, or JSON of another shape raise
+    one CoworldError line naming the file."""
+    try:
+        data = json.loads(path.read_bytes().decode("utf-8"))
+    except UnicodeDecodeError:
+        raise CoworldError(_damaged(path, "not UTF-8 text", fix)) from None
+    except json.JSONDecodeError as err:
+        raise CoworldError(_damaged(path, f"not JSON: {err}", fix)) from None
+    if not isinstance(data, dict):
+        raise CoworldError(_damaged(path, f"JSON {type(data).__name__}, not an object", fix))
+    return data
+
+
+def _damaged(path: Path, why: str, fix: str) -> str:
+    return f"{path} is damaged ({why})" + (f"; {fix}" if fix else "; it is not a run folder coworld can read")
 
 
 def run_description(info: Any) -> Any:

@@ -21,6 +21,8 @@ from coworld.errors import CoworldError, DatasetError
 ALGOS = ("coworld", "dreamerv2", "curl", "curl-cql", "drq-bc", "dreamerv2-penalty", "dreamerv2-finetune")
 MODEL_FREE = ("curl", "curl-cql", "drq-bc")
 NEEDS_SOURCE = ("coworld", "dreamerv2-finetune")
+MODEL_BASED = ("coworld", "dreamerv2", "dreamerv2-penalty", "dreamerv2-finetune")
+"""The algorithms that train DreamerV2's world model (and read ``train.backend``)."""
 """Algorithms that also learn online in a source task (``--source``); the others learn from the target dataset
 alone."""
 
@@ -53,6 +55,8 @@ class TrainJob:
     preset: str
     resume: bool = False
     """The run folder already holds this run: training continues from its checkpoint."""
+    start_over: bool = False
+    """``--force``: what training wrote in the run folder is removed first, and the run starts afresh."""
     warnings: tuple[str, ...] = ()
     """Things worth telling the user before a long run starts (one line each)."""
 
@@ -77,8 +81,14 @@ def check_job(
     seed: int | None,
     device: str | None,
     overrides: Sequence[str],
+    force: bool = False,
 ) -> TrainJob:
-    """Validate a training request without writing anything; raises CoworldError with one line on any problem."""
+    """Validate a training request without writing anything; raises CoworldError with one line on any problem.
+
+    Everything a run would trip over later is checked here: the config's rules between keys and its memory
+    (:func:`check_config`), the dataset against the sequences sampled from it, and a resumed run folder's
+    checkpoint. ``force``: a run folder of other settings is started over (:attr:`TrainJob.start_over`).
+    """
     from coworld.training.run import check_run_dir, preset_warnings
 
     if algo not in ALGOS:
@@ -108,18 +118,62 @@ def check_job(
     if device is not None:
         extra.append(f"device={device}")
     config = make_config(preset, extra)
+    check_config(algo, config, target_spec.action_size)
     path = Path(dataset) if dataset is not None else default_dataset_path(target, "medium-replay")
-    if not check_dataset(path, target, target_spec.action_size):
+    if not check_dataset(path, target, target_spec.action_size, needed_steps(algo, config)):
         warnings.append(
             f"{path} is not complete (its collection was interrupted or is still running): training uses the"
             " episodes committed so far; finish it with `coworld collect ... --resume` for the whole dataset"
         )
     run_dir = Path(logdir) if logdir is not None else default_logdir(algo, source, target, config.seed)
-    check_schedule(algo, config)
     job = TrainJob(algo, source if algo in NEEDS_SOURCE else None, target, path, run_dir, config, preset)
-    resume = check_run_dir(run_dir, config, job.info())
-    warnings += preset_warnings(preset, config.device)
-    return dataclasses.replace(job, resume=resume, warnings=tuple(warnings))
+    if force:
+        if run_dir.exists() and not run_dir.is_dir():
+            raise CoworldError(f"{run_dir} is a file, not a run folder; pass another --logdir")
+        resume = False
+    else:
+        resume = check_run_dir(run_dir, config, job.info())
+    if resume:
+        check_resumable(run_dir, config, job.info())
+    warnings += preset_warnings(preset, config.device, algo)
+    return dataclasses.replace(job, resume=resume, start_over=force, warnings=tuple(warnings))
+
+
+def check_config(algo: str, config: Config, action_size: int) -> None:
+    """What ``train`` requires of a config beyond each value's range: the rules between keys that only one algorithm
+    reads (:func:`check_schedule`), a memory estimate within this machine's (:mod:`coworld.budget`) and, for the
+    world-model algorithms, ``train.backend``'s choice (:func:`check_backend`). ``sweep`` checks every run's config
+    with it before its folder exists."""
+    from coworld.budget import check_memory
+
+    check_schedule(algo, config)
+    check_memory(algo, config)
+    if algo in MODEL_BASED:
+        check_backend(config, action_size)
+
+
+def needed_steps(algo: str, config: Config) -> tuple[int, str] | None:
+    """The fewest steps a dataset must hold for ``algo``'s sampler and the config key that asks for them: a model's
+    sequences of ``train.seq_len`` (the model-free baselines sample single transitions, stacks padded at the
+    start of an episode, so any dataset will do)."""
+    return None if algo in MODEL_FREE else (config.train.seq_len, "train.seq_len")
+
+
+def check_resumable(run_dir: Path, config: Config, info: dict[str, Any]) -> None:
+    """The checkpoints a resumed run will load are whole and of this run (one line otherwise), checked before the
+    run folder is touched; the main checkpoint, else a source agent's pretraining checkpoint."""
+    from coworld.agents.coworld import COWORLD_CHECKPOINT_KEYS
+    from coworld.training.loading import load_run_checkpoint
+    from coworld.training.offline import CHECKPOINT_KEYS
+    from coworld.training.online import CHECKPOINT_KEYS as ONLINE_KEYS
+
+    main, source = run_dir / "checkpoint.pt", run_dir / "source" / "checkpoint.pt"
+    if main.exists():
+        keys = COWORLD_CHECKPOINT_KEYS if info["algo"] == "coworld" else CHECKPOINT_KEYS
+        load_run_checkpoint(main, config, info, keys=keys, mmap=True)
+    elif source.exists():
+        source_info = {**info, "online": True, "target": info["source"]}  # the source agent learned in the source task
+        load_run_checkpoint(source, config, source_info, keys=ONLINE_KEYS, mmap=True)
 
 
 def check_schedule(algo: str, config: Config) -> None:
@@ -137,8 +191,21 @@ IMAGE_SHAPE = (64, 64, 3)
 """The frames every model here takes."""
 
 
-def check_dataset(path: Path, task: str, action_size: int) -> bool:
-    """The dataset exists, opens, was recorded in ``task`` with its action size, and has 64 x 64 RGB frames.
+def check_backend(config: Config, action_size: int) -> None:
+    """``train.backend``'s choice for the world model ``config`` builds, made before anything is written (a refused
+    ``cpu`` raises ConfigError with one line)."""
+    from coworld import backends
+    from coworld.agents.dreamerv2 import resolve_precision
+    from coworld.training.run import resolve_device
+
+    device = resolve_device(config.device)
+    autocast = resolve_precision(config.precision, device) is not None
+    backends.check_config(config, action_size, IMAGE_SHAPE, device, autocast)
+
+
+def check_dataset(path: Path, task: str, action_size: int, needed: tuple[int, str] | None = None) -> bool:
+    """The dataset exists, opens, was recorded in ``task`` with its action size, has 64 x 64 RGB frames, and holds
+    at least ``needed`` = (steps, the config key asking for them) steps.
 
     Returns whether it is complete (its collection reached its target)."""
     from coworld.data import open_dataset
@@ -158,14 +225,22 @@ def check_dataset(path: Path, task: str, action_size: int) -> bool:
                 f"{path} has {h} x {w} x {c} frames but the models take 64 x 64 x 3 RGB frames; convert it to 64 x 64"
                 " (e.g. `coworld dataset import ... --resize 64`)"
             )
+        if needed is not None and data.num_frames < needed[0]:
+            steps, key = needed
+            raise DatasetError(
+                f"{path} holds {data.num_frames} steps but {key} needs sequences of {steps}; collect more"
+                f" (`coworld collect ... --resume`) or lower {key} with --set"
+            )
         return bool(data.complete)
 
 
 def run_job(job: TrainJob, *, progress: bool = True) -> dict[str, Any]:
     """Train as ``job`` says (resuming its run folder if it holds this run); returns a summary."""
-    from coworld.training.run import prepare_run_dir, resolve_device, seed_everything
+    from coworld.training.run import clear_run_dir, prepare_run_dir, resolve_device, seed_everything
 
     device = resolve_device(job.config.device)
+    if job.start_over:
+        clear_run_dir(job.logdir)
     resumed = prepare_run_dir(job.logdir, job.config, job.info())
     seed_everything(job.config.seed)
     if job.algo == "coworld":

@@ -1,7 +1,8 @@
 """The world models of a run folder, and the episodes to show them.
 
 A ``coworld`` run holds two DreamerV2 agents (its checkpoint's ``agent`` is the target agent, ``source`` the
-source agent); a ``dreamerv2`` run holds one. CURL runs have no world model.
+source agent); a ``dreamerv2`` run and its penalised and fine-tuned variants hold one. The model-free baselines
+(CURL, CURL+CQL, DrQ+BC) have no world model.
 """
 
 from __future__ import annotations
@@ -15,9 +16,9 @@ import numpy as np
 
 from coworld import envs
 from coworld.config import Config
-from coworld.errors import CheckpointError, CoworldError
+from coworld.errors import CoworldError
 
-WORLD_MODEL_ALGOS = ("coworld", "dreamerv2")
+WORLD_MODEL_ALGOS = ("coworld", "dreamerv2", "dreamerv2-penalty", "dreamerv2-finetune")
 _KEYS = ("image", "action", "reward", "is_first", "is_last", "is_terminal")
 
 
@@ -73,34 +74,30 @@ class RunModels:
 
 
 def load_run_models(path: str | Path, device: str = "auto") -> RunModels:
-    """Rebuild the DreamerV2 agents of a run folder (or of its checkpoint file); problems raise one line."""
-    from coworld.agents.dreamerv2 import DreamerV2
-    from coworld.training.checkpoint import CHECKPOINT_NAME, load_checkpoint
-    from coworld.training.run import load_run, resolve_device
+    """Rebuild the DreamerV2 agents of a run folder (or of its checkpoint file), checked to be what the folder says
+    (:mod:`coworld.training.loading`); problems raise one line."""
+    from coworld.agents.factory import make_agent
+    from coworld.training.checkpoint import load_agent_state
+    from coworld.training.loading import load_run_checkpoint, open_run
+    from coworld.training.run import resolve_device
 
-    path = Path(path)
-    if not path.exists():
-        raise CheckpointError(f"no run folder or checkpoint at {path}; pass a run folder made by `coworld train`")
-    run_dir = path if path.is_dir() else path.parent
-    ckpt = path / CHECKPOINT_NAME if path.is_dir() else path
-    config, info = load_run(run_dir)
-    algo = info.get("algo")
+    run_dir, ckpt, config, info = open_run(path)
+    algo = info["algo"]
     if algo not in WORLD_MODEL_ALGOS:
         raise CoworldError(
-            f"{run_dir} is a {algo} run: it has no world model to look inside; pass a coworld or dreamerv2 run"
+            f"{run_dir} is a {algo} run: it has no world model to look inside; pass a run of"
+            f" {', '.join(WORLD_MODEL_ALGOS)}"
         )
+    parts = {"target": "agent", "source": "source"} if algo == "coworld" else {algo: "agent"}
     torch_device = resolve_device(device)
-    state = load_checkpoint(ckpt, map_location=torch_device)
+    state = load_run_checkpoint(ckpt, config, info, keys=tuple(parts.values()), map_location=torch_device)
     config = replace(config, device=str(torch_device))
     action_size = envs.task_spec(info["target"]).action_size
-    parts = {"target": "agent", "source": "source"} if algo == "coworld" else {"dreamerv2": "agent"}
     agents = {}
     for name, key in parts.items():
-        agent = DreamerV2(config=config, action_size=action_size, device=torch_device)
-        try:
-            agent.load_state_dict(state[key])
-        except (KeyError, RuntimeError, ValueError) as err:
-            raise CheckpointError(f"{ckpt} does not fit a {algo} run of this config ({str(err)[:100]})") from None
+        agent = make_agent("dreamerv2" if algo == "coworld" else algo, config=config, action_size=action_size,
+                           device=torch_device)  # fmt: skip
+        load_agent_state(agent, state[key], ckpt, f"a {algo} run of this config")
         agents[name] = agent
     return RunModels(run_dir=run_dir, config=config, info=info, agents=agents)
 

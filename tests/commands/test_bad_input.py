@@ -41,8 +41,8 @@ def fake_dataset(path: Path, task: str, action_size: int, image_shape=(64, 64, 3
     with DatasetWriter(
         path, task=task, env_config={}, quality="random", collector={}, action_size=action_size, image_shape=image_shape
     ) as writer:
-        writer.add_episode(
-            np.zeros((4, *image_shape), np.uint8), np.zeros((3, action_size)), np.zeros(3), terminated=False
+        writer.add_episode(  # 17 frames: the tiny preset's sequences of 16 steps fit
+            np.zeros((17, *image_shape), np.uint8), np.zeros((16, action_size)), np.zeros(16), terminated=False
         )
         writer.close(complete=True)
     return path
@@ -141,7 +141,7 @@ def test_an_unfinished_dataset_is_warned_about(tmp_path):
     with DatasetWriter(
         path, task="toy_reach_shifted", env_config={}, quality="random", collector={}, action_size=2
     ) as w:
-        w.add_episode(np.zeros((4, 64, 64, 3), np.uint8), np.zeros((3, 2)), np.zeros(3), terminated=False)
+        w.add_episode(np.zeros((17, 64, 64, 3), np.uint8), np.zeros((16, 2)), np.zeros(16), terminated=False)
     job = check_job(algo="dreamerv2", source=None, target="toy_reach_shifted", dataset=path, preset="tiny",
                     logdir=tmp_path / "run", seed=0, device="cpu", overrides=())  # fmt: skip
     assert any("is not complete" in warning for warning in job.warnings)

@@ -95,7 +95,7 @@ def test_unknown_set_key(tmp_path, toy_dataset):
 
 def test_eval_missing_and_corrupt_checkpoint(tmp_path):
     code, out = run(["eval", "--ckpt", str(tmp_path / "nothing")])
-    assert_one_line_error(code, out, "no checkpoint at")
+    assert_one_line_error(code, out, "no run folder or checkpoint at")
     run_dir = tmp_path / "run"
     run_dir.mkdir()
     (run_dir / "checkpoint.pt").write_bytes(b"\x80\x02garbage")

@@ -8,6 +8,7 @@ import pytest
 import torch
 
 from coworld.losses.dreamer import actor_loss, critic_loss, image_loss, reward_loss
+from coworld.models.distributions import UnitGaussian
 
 
 def test_critic_loss_names_the_value_and_the_target_when_their_shapes_differ() -> None:
@@ -27,15 +28,12 @@ def test_reward_loss_names_the_reward_prediction_when_shapes_differ() -> None:
         reward_loss(torch.zeros(2, 3), torch.zeros(2, 2))
 
 
-@pytest.mark.parametrize("offset", [1.0, 1.5, -0.75])
-def test_image_loss_takes_any_offset_off_the_prediction_for_pixels_and_scaled_images(offset: float) -> None:
-    """``image_loss(pred, target, offset)`` is ``0.5 * sum((pred - offset - target)^2)`` for every offset, not only
-    the 0, 0.5 and 0.25 the world model and the other tests use; a float64 target gives the float32 loss."""
-    pred = torch.randn(2, 3, 3, 8, 8)
-    pixels = torch.randint(0, 256, pred.shape, dtype=torch.uint8)
-    scaled = pixels.double() / 255.0 - 0.5
-    expected = 0.5 * (pred.double() - offset - scaled).square().sum((2, 3, 4))
-    for target in (pixels, scaled, scaled.float()):
-        got = image_loss(pred, target, offset=offset)
-        assert got.dtype == torch.float32
-        torch.testing.assert_close(got.double(), expected, rtol=1e-5, atol=1e-4)
+def test_image_loss_is_half_the_squared_error_summed_over_each_image_in_float32() -> None:
+    """``0.5 * sum_{C,H,W} (pred - target)^2`` per ``(B, T)``, from a mean or its :class:`UnitGaussian`, computed in
+    float32 whatever the inputs' float dtype."""
+    pred, target = torch.randn(2, 3, 3, 4, 5, dtype=torch.float64), torch.rand(2, 3, 3, 4, 5, dtype=torch.float64)
+    expected = 0.5 * (pred.float() - target.float()).square().sum((2, 3, 4))
+    for prediction in (pred, UnitGaussian(pred, event_dims=3)):
+        got = image_loss(prediction, target)
+        assert got.dtype == torch.float32 and got.shape == (2, 3)
+        torch.testing.assert_close(got, expected)

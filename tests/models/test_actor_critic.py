@@ -13,7 +13,7 @@ from coworld.errors import ConfigError
 from coworld.losses.dreamer import lambda_return
 from coworld.models.actor_critic import ActorCritic, flatten_states
 from coworld.models.distributions import Normal, TanhNormal, TruncatedNormal
-from coworld.models.networks import ELU, frozen_parameters
+from coworld.models.networks import frozen_parameters
 from coworld.models.world_model import WorldModel
 
 from .conftest import ACTION_SIZE, random_batch
@@ -397,7 +397,7 @@ def test_mlp_norm_and_act_reach_actor_critic_and_world_model_heads(tiny: Config)
     wm, ac, start = _setup(config)
     for head in (ac.actor.mlp, ac.critic.mlp, ac.slow_critic.mlp, wm.reward_head.mlp, wm.discount_head.mlp):
         kinds = {type(m) for m in head.modules()}
-        assert torch.nn.LayerNorm in kinds and torch.nn.SiLU in kinds and ELU not in kinds
+        assert torch.nn.LayerNorm in kinds and torch.nn.SiLU in kinds and torch.nn.ELU not in kinds
     plain_wm, plain_ac, _ = _setup(tiny)
     assert not any(isinstance(m, torch.nn.LayerNorm) for m in plain_ac.modules())
     assert not any(isinstance(m, torch.nn.LayerNorm) for m in plain_wm.reward_head.modules())

@@ -79,7 +79,7 @@ def test_image_reward_discount_terms() -> None:
     expected = 0.5 * ((pred - target) ** 2).sum(dim=(2, 3, 4))
     torch.testing.assert_close(image_loss(pred, target), expected)
     torch.testing.assert_close(image_loss(UnitGaussian(pred, 3), target), expected)
-    # Its own backward: the gradient of the summed squared error, to the prediction and to a target that needs one.
+    # The gradient of the summed squared error, to the prediction and to a target that needs one.
     pred32 = pred.clone().requires_grad_()
     target32 = target.clone().requires_grad_()
     weight = torch.randn(2, 3)
@@ -87,25 +87,6 @@ def test_image_reward_discount_terms() -> None:
     want = torch.autograd.grad((0.5 * ((pred32 - target32) ** 2).sum((2, 3, 4)) * weight).sum(), (pred32, target32))
     for a, b in zip(got, want, strict=True):
         torch.testing.assert_close(a, b)
-    # A uint8 target holds pixels, scaled as preprocess_image scales them.
-    pixels = torch.randint(0, 256, target.shape, dtype=torch.uint8)
-    scaled = pixels.float() / 255.0 - 0.5
-    torch.testing.assert_close(image_loss(pred, pixels), image_loss(pred, scaled))
-    got = torch.autograd.grad((image_loss(pred32, pixels) * weight).sum(), pred32)
-    torch.testing.assert_close(got[0], torch.autograd.grad((image_loss(pred32, scaled) * weight).sum(), pred32)[0])
-    # A prediction that carries an offset (the world model's mean plus 0.5) gives the same loss and gradient.
-    for offset in (0.5, 0.25):
-        for goal in (pixels, scaled):
-            shifted = (pred32.detach() + offset).requires_grad_()
-            torch.testing.assert_close(image_loss(shifted, goal, offset=offset), image_loss(pred, scaled))
-            got = torch.autograd.grad((image_loss(shifted, goal, offset=offset) * weight).sum(), shifted)
-            want = torch.autograd.grad((image_loss(pred32, scaled) * weight).sum(), pred32)
-            torch.testing.assert_close(got[0], want[0])
-    # Its backward reuses the saved difference: a second backward through the same graph fails, never runs on it.
-    loss = image_loss(pred32, pixels).sum()
-    loss.backward(retain_graph=True)
-    with pytest.raises(RuntimeError, match="modified by an inplace operation"):
-        loss.backward()
     mean, reward = torch.randn(2, 3), torch.randn(2, 3)
     torch.testing.assert_close(reward_loss(mean, reward), 0.5 * (mean - reward) ** 2)
     torch.testing.assert_close(reward_loss(UnitGaussian(mean), reward), 0.5 * (mean - reward) ** 2)

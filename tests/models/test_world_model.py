@@ -3,13 +3,15 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import numpy as np
-import pytest
 import torch
+from torch import nn
 
-from coworld.config import Config
-from coworld.models.networks import space_to_depth
+from coworld.config import Config, make_config
+from coworld.models.distributions import UnitGaussian
+from coworld.models.networks import ChannelNorm
 from coworld.models.world_model import WorldModel, preprocess_image
 
 from .conftest import ACTION_SIZE, random_batch
@@ -42,29 +44,48 @@ def test_loss_terms_shapes_and_total(tiny: Config) -> None:
     torch.testing.assert_close(0.5 * (pred - batch["reward"]) ** 2, terms["reward"])
 
 
-# The tiny preset's conv depth (its decoder ends in 4 x 4 phases, so the loss's target is laid out again) and 16.
-@pytest.mark.parametrize("depth", [None, 16])
-def test_a_prepared_batch_gives_the_same_loss_gradients_and_posterior(tiny: Config, depth: int | None) -> None:
-    cfg = tiny.world_model if depth is None else dataclasses.replace(tiny.world_model, cnn_depth=depth)
-    model = WorldModel(config=cfg, action_size=ACTION_SIZE)
+def test_image_term_is_the_decoders_gaussian_nll_of_the_preprocessed_image(tiny: Config) -> None:
+    """The image term is ``-ln N(preprocess_image(o); decoder(feat), 1)`` summed over pixels (its constant dropped),
+    and the loss repeats bit for bit from the same generator seed."""
+    model = WorldModel(config=tiny.world_model, action_size=ACTION_SIZE)
     batch = random_batch(batch=2, length=5)
-    prepared = model.prepare(batch)
-    assert "image" not in prepared and model.prepare(prepared) is prepared
-    phases = space_to_depth(batch["image"])
-    # On a CPU the encoder's phases come as the pixels' values in float32; the loss's target stays uint8.
-    torch.testing.assert_close(prepared["phases"], phases.float(), rtol=0, atol=0)
-    target = space_to_depth(phases) if model.decoder.phase_levels == 2 else phases
-    torch.testing.assert_close(prepared["target"], target, rtol=0, atol=0)
-    results = []
-    for given in (batch, prepared):
-        torch.manual_seed(0)
-        terms, aux = model.loss(given)
-        grads = torch.autograd.grad(aux["loss"], list(model.parameters()))
-        torch.manual_seed(1)
-        post, _, embed = model.observe(given)
-        results.append([*terms.values(), *grads, post["stoch"], embed])
-    for a, b in zip(*results, strict=True):
-        assert torch.equal(a, b)
+    terms, aux = model.loss(batch, torch.Generator().manual_seed(5))
+    mean = model.decoder(aux["feat"])
+    assert mean.shape == (2, 5, 3, 64, 64)
+    want = 0.5 * ((mean - preprocess_image(batch["image"])) ** 2).sum((-3, -2, -1))
+    torch.testing.assert_close(terms["image"], want)
+    target = preprocess_image(batch["image"])
+    torch.testing.assert_close(terms["image"], -UnitGaussian(mean, event_dims=3).log_prob(target))
+    normal = torch.distributions.Normal(mean.double(), 1.0).log_prob(target.double()).sum((-3, -2, -1))
+    constant = 0.5 * math.log(2 * math.pi) * mean[0, 0].numel()
+    torch.testing.assert_close(terms["image"].double(), -normal - constant, rtol=1e-5, atol=1e-3)
+    again, again_aux = model.loss(batch, torch.Generator().manual_seed(5))
+    assert all(torch.equal(again[name], terms[name]) for name in terms)
+    assert torch.equal(again_aux["loss"], aux["loss"])
+    # The same generator seed gives observe's posterior too; the loss reads it.
+    post, _, embed = model.observe(batch, generator=torch.Generator().manual_seed(5))
+    assert torch.equal(post["stoch"], aux["post"]["stoch"]) and torch.equal(embed, aux["embed"])
+    torch.testing.assert_close(embed, model.encoder(preprocess_image(batch["image"])), rtol=0, atol=0)
+
+
+def test_config_reaches_every_module(tiny: Config) -> None:
+    """``act``, ``norm``, the conv kernels and the GRU's bias and epsilon build the modules they name."""
+    overrides = {"act": "silu", "norm": "layer", "encoder_kernels": (3, 3, 3, 3, 3), "gru_bias": True, "gru_eps": 1e-3}
+    cfg = dataclasses.replace(tiny.world_model, **overrides)
+    model = WorldModel(config=cfg, action_size=ACTION_SIZE)
+    kinds = {type(m) for m in (*model.encoder.modules(), *model.decoder.modules(), *model.rssm.modules())}
+    assert nn.SiLU in kinds and nn.ELU not in kinds and ChannelNorm in kinds and nn.LayerNorm in kinds
+    assert [m.kernel_size for m in model.encoder.net if isinstance(m, nn.Conv2d)] == [(3, 3)] * 5
+    assert model.encoder.embed_size == 16 * cfg.cnn_depth
+    assert model.rssm.cell.linear.bias is not None and model.rssm.cell.norm.eps == 1e-3
+    terms, aux = model.loss(random_batch(batch=2, length=3))
+    assert torch.isfinite(aux["loss"]) and terms["image"].shape == (2, 3)
+    plain = WorldModel(config=tiny.world_model, action_size=ACTION_SIZE)
+    assert not any(isinstance(m, ChannelNorm | nn.SiLU) for m in plain.modules())
+    assert [type(m) for m in plain.rssm.img_in] == [nn.Linear, nn.ELU]  # the GRU cell's own LayerNorm stays
+    assert plain.rssm.cell.linear.bias is None and plain.rssm.cell.norm.eps == 1e-5  # the tiny preset's
+    paper = WorldModel(config=make_config("paper").world_model, action_size=ACTION_SIZE)
+    assert paper.rssm.cell.linear.bias is not None and paper.rssm.cell.norm.eps == 1e-3  # DreamerV2's
 
 
 def test_no_discount_head_without_pred_discount(tiny: Config) -> None:

@@ -90,11 +90,11 @@ def test_table_mean_std_bold_and_iqm_aggregate(tmp_path, score_scale):
     assert table[0] == "| pair | dreamerv2 | coworld |"  # the paper's column order
     assert table[2] == "| toy_reach → toy_reach_shifted | 11.3 ± 1.9 | **35.0 ± 8.2** |"
     assert table[3] == "| toy_reach_shifted → toy_reach | **40.0 ± 0.0** | 25.0 ± 5.0 (n=2) |"
-    # IQM of normalized scores: dreamerv2 [.1 .1 .14 .4 .4 .4] -> middle four .1 .14 .4 .4 -> 0.26;
-    # coworld [.25 .35 .45 .2 .3] -> middle three .25 .3 .35 -> 0.30
+    # IQM of normalized scores (x 100, as eval prints them): dreamerv2 [10 10 14 40 40 40] -> middle four
+    # 10 14 40 40 -> 26.0; coworld [25 35 45 20 30] -> middle three 25 30 35 -> 30.0
     aggregate = table[4].split(" | ")
     assert aggregate[0] == "| IQM normalized score [95% CI]"
-    for cell, point in zip(aggregate[1:], ("0.26", "0.30"), strict=True):
+    for cell, point in zip(aggregate[1:], ("26.0", "30.0"), strict=True):
         value, interval = cell.strip(" |").split(" [")
         low, high = (float(x) for x in interval.rstrip("]").split(", "))
         assert value == point and low <= float(value) <= high and low < high
@@ -120,7 +120,7 @@ def test_results_csv_one_row_per_run(tmp_path, score_scale):
     row = next(r for r in rows if r["run_dir"].endswith("cw-a2"))
     assert row["pair"] == "toy_reach->toy_reach_shifted" and row["algo"] == "coworld" and row["seed"] == "2"
     assert float(row["final_return"]) == 45.0 and float(row["return_std"]) == 5.0 and row["episodes"] == "2"
-    assert float(row["normalized_score"]) == pytest.approx(0.45)
+    assert float(row["normalized_score"]) == pytest.approx(45.0)
     assert float(row["value_estimate"]) == 3.0 and float(row["value_true"]) == 2.0
     baseline = next(r for r in rows if r["run_dir"].endswith("dv-a0"))
     assert baseline["pair"] == "toy_reach_shifted" and baseline["source"] == ""  # plain train: no pair known

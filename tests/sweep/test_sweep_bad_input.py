@@ -139,3 +139,26 @@ def test_sigterm_stops_the_sweep_and_its_child_with_exit_code_143(tmp_path, proc
     assert "stopped by SIGTERM: finished runs are kept; rerun the same command" in stopped.stderr
     assert process_gone(child)
     assert Path(root / "sweep.json").exists()  # the rerun resumes this folder
+
+
+@pytest.mark.parametrize(
+    "args, needles",
+    [
+        (["--pairs", "toy_reach:toy_reach_shifted", "--preset", "tiny", "--set", "penalty.model_updates=40"],
+         ["the dreamerv2-penalty runs", "penalty.model_updates=40 leaves none"]),
+        (["--table", "toy-cpu", "--set", "penalty.model_updates=100000"], ["penalty.model_updates=100000"]),
+        (["--table", "toy-cpu", "--set", "penalty.model_updates=100000", "--dry-run"], ["penalty.model_updates"]),
+        (["--pairs", "toy_reach:toy_reach_shifted", "--preset", "tiny", "--set", "penalty.ensemble=1000000000"],
+         ["penalty.ensemble", "GiB"]),
+    ],
+)  # fmt: skip
+def test_the_rules_train_applies_are_checked_for_every_run_before_the_folder_exists(tmp_path, args, needles):
+    refused(["sweep", *args, "--dir", str(tmp_path / "s")], *needles)
+    assert not (tmp_path / "s").exists()
+
+
+def test_a_rule_train_applies_refuses_a_real_sweep_process_before_collecting(tmp_path, processes):
+    done = processes.run_cli("sweep", "--pairs", "toy_reach:toy_reach_shifted", "--preset", "tiny", "--set",
+                             "penalty.model_updates=40", "--dir", str(tmp_path / "s"))  # fmt: skip
+    assert done.returncode == 2 and "penalty.model_updates=40" in processes.last_word(done.stderr, "error: ")
+    assert not (tmp_path / "s").exists()

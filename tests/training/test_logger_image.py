@@ -35,3 +35,31 @@ def test_without_tensorboard_nothing_is_written(tmp_path):
     with Logger(tmp_path, outputs=("jsonl",)) as logger:
         logger.log_image("openl/task", np.zeros((4, 4, 3), np.uint8), step=1)
     assert not (tmp_path / "tb").exists() and (tmp_path / "metrics.jsonl").read_text() == ""
+
+
+FULL_TB = """
+import resource, sys
+import numpy as np
+from coworld.errors import StorageError
+from coworld.training.logger import Logger
+logger = Logger(sys.argv[1], outputs=("tensorboard",))
+logger.log({"wm/loss": 1.0}, step=1)
+resource.setrlimit(resource.RLIMIT_FSIZE, (200_000, resource.RLIM_INFINITY))  # the disk fills up
+try:
+    for step in range(2, 50):
+        logger.log_image("openl/x", np.random.default_rng(step).integers(0, 255, (256, 256, 3), np.uint8), step)
+    logger.close()
+except StorageError as err:
+    print(f"error: {err}", file=sys.stderr)
+    sys.exit(2)
+"""
+
+
+def test_a_full_disk_under_tensorboards_writer_thread_is_one_line_naming_the_folder(tmp_path):
+    import subprocess
+    import sys
+
+    done = subprocess.run([sys.executable, "-c", FULL_TB, str(tmp_path)], capture_output=True, text=True, timeout=60)
+    lines = [line for line in done.stderr.splitlines() if line.strip()]
+    assert done.returncode == 2 and len(lines) == 1, done.stderr
+    assert lines[0] == f"error: cannot write TensorBoard events in {tmp_path / 'tb'}: File too large", lines[0]

@@ -1,0 +1,179 @@
+"""What a run folder holds is what it says: a checkpoint copied in from another run, a damaged run.json or
+config.json and a checkpoint missing an entry are refused in one line (exit code 2) by every command that loads them,
+before anything is written; the model-based variants' world models can be looked inside."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+
+import pytest
+from click.testing import CliRunner
+
+from coworld.cli import main
+from coworld.report import write_report
+from coworld.training.checkpoint import save_checkpoint
+from coworld.training.run import prepare_run_dir
+from coworld.training.train import CHECKPOINT_KINDS, check_job
+
+TARGET = "toy_reach_shifted"
+
+
+def digest(folder: Path) -> dict[str, str]:
+    return {str(p): hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def cli(*args: str) -> tuple[int, str]:
+    result = CliRunner().invoke(main, list(args))
+    return result.exit_code, result.output
+
+
+def one_line(code: int, output: str, *needles: str) -> str:
+    assert code == 2, output
+    lines = [line for line in output.splitlines() if line.strip() and not line.startswith(("warning: ", "note: "))]
+    assert len(lines) == 1 and lines[0].startswith("error: ") and "Traceback" not in output, output
+    for needle in needles:
+        assert needle in lines[0], lines[0]
+    return lines[0]
+
+
+@pytest.mark.parametrize(
+    ("folder_algo", "checkpoint_algo"),
+    [
+        ("dreamerv2-finetune", "dreamerv2-penalty"),
+        ("dreamerv2", "dreamerv2-finetune"),
+        ("dreamerv2-finetune", "dreamerv2"),
+    ],
+)
+def test_eval_refuses_a_checkpoint_of_another_algorithm(tmp_path, toy_dataset, make_run, folder_algo, checkpoint_algo):
+    run = make_run(tmp_path / "run", folder_algo, toy_dataset, checkpoint_of=checkpoint_algo)
+    before = digest(run)
+    code, out = cli("eval", "--ckpt", str(run), "--episodes", "1", "--device", "cpu")
+    one_line(code, out, f"'{CHECKPOINT_KINDS[checkpoint_algo]}' checkpoint", f"is a {folder_algo} run", "copied")
+    assert digest(run) == before  # no eval.json labelled with the folder's algorithm
+
+
+def test_eval_refuses_a_checkpoint_of_another_task_as_a_real_process(tmp_path, toy_dataset, make_run, processes):
+    run = make_run(tmp_path / "run", "dreamerv2-penalty", toy_dataset, task="toy_reach_centre")
+    done = processes.run_cli("eval", "--ckpt", str(run), "--episodes", "1", "--device", "cpu")
+    assert done.returncode == 2
+    line = processes.last_word(done.stderr, "error: ")
+    assert "was trained on toy_reach_centre" in line and f"run of {TARGET}" in line
+    assert not (run / "eval.json").exists()
+
+
+def test_eval_refuses_a_checkpoint_of_other_settings(tmp_path, toy_dataset, make_run):
+    run = make_run(tmp_path / "run", "dreamerv2", toy_dataset)
+    state = json.loads((run / "config.json").read_text())
+    state["world_model"]["deter"] = 32
+    (run / "config.json").write_text(json.dumps(state))
+    code, out = cli("eval", "--ckpt", str(run), "--episodes", "1", "--device", "cpu")
+    one_line(code, out, "other settings", "world_model.deter: saved 64, now 32")
+
+
+def test_report_does_not_count_an_evaluation_of_another_algorithm(tmp_path, toy_dataset, make_run):
+    run = make_run(tmp_path / "runs" / "a", "dreamerv2-finetune", toy_dataset)
+    record = {"task": TARGET, "returns": [26.3], "lengths": [50], "extra": {"algo": "dreamerv2-penalty"}}
+    (run / "eval.json").write_text(json.dumps(record))
+    report = write_report(tmp_path / "runs", tmp_path / "report")
+    assert report.finished == 0
+    assert "an evaluation of a dreamerv2-penalty agent" in (tmp_path / "report" / "report.md").read_text()
+
+
+DAMAGED = {
+    "a number": b"5",
+    "a list": b"[]",
+    "null": b"null",
+    "not UTF-8": b"\xff\xfe\x00garbage",
+    "no algo": b'{"target": "toy_reach_shifted"}',
+    "an unknown algo": b'{"algo": "ppo", "target": "toy_reach_shifted"}',
+}
+
+
+TINY_DREAMER = ["--algo", "dreamerv2", "--preset", "tiny", "--device", "cpu"]
+
+
+def commands(run: Path, dataset: Path, tmp_path: Path) -> dict[str, list[str]]:
+    return {
+        "eval": ["eval", "--ckpt", str(run), "--episodes", "1", "--device", "cpu"],
+        "viz": ["viz", "predictions", "--ckpt", str(run), "--out", str(tmp_path / "p.png"), "--device", "cpu"],
+        "train": ["train", "--target", TARGET, "--dataset", str(dataset), "--logdir", str(run), *TINY_DREAMER],
+    }
+
+
+@pytest.mark.parametrize("file", ["run.json", "config.json"])
+@pytest.mark.parametrize("damage", sorted(DAMAGED))
+def test_a_damaged_run_description_is_one_line_in_every_command(tmp_path, toy_dataset, make_run, file, damage):
+    if file == "config.json" and damage in ("no algo", "an unknown algo"):
+        pytest.skip("a run.json damage")
+    run = make_run(tmp_path / "run", "dreamerv2", toy_dataset)
+    (run / file).write_bytes(DAMAGED[damage])
+    before = digest(run)
+    for name, args in commands(run, toy_dataset, tmp_path).items():
+        code, out = cli(*args)
+        line = one_line(code, out)
+        named = "damaged" in line and file in line
+        assert named or (name == "train" and "holds a run with algo='ppo'" in line), (name, line)
+        assert digest(run) == before and not (tmp_path / "p.png").exists(), name
+
+
+def test_a_damaged_run_json_as_a_real_process(tmp_path, toy_dataset, make_run, processes):
+    run = make_run(tmp_path / "run", "dreamerv2", toy_dataset)
+    (run / "run.json").write_bytes(b"\xff\xfe")
+    done = processes.run_cli("eval", "--ckpt", str(run), "--device", "cpu")
+    assert done.returncode == 2 and "not UTF-8" in processes.last_word(done.stderr, "error: ")
+
+
+def test_a_checkpoint_missing_an_entry_is_refused_before_a_resume_writes_anything(tmp_path, toy_dataset, processes):
+    job = check_job(algo="drq-bc", source=None, target=TARGET, dataset=toy_dataset, preset="tiny",
+                    logdir=tmp_path / "run", seed=0, device="cpu", overrides=())  # fmt: skip
+    prepare_run_dir(job.logdir, job.config, job.info())
+    save_checkpoint(job.logdir / "checkpoint.pt", {"kind": "drq-bc"})
+    before = digest(job.logdir)
+    args = ["--target", TARGET, "--dataset", str(toy_dataset), "--logdir", str(job.logdir), "--preset", "tiny"]
+    done = processes.run_cli("train", "--algo", "drq-bc", *args, "--device", "cpu", "--seed", "0")
+    assert done.returncode == 2
+    line = processes.last_word(done.stderr, "error: ")
+    assert "damaged drq-bc checkpoint" in line and "'agent'" in line
+    assert digest(job.logdir) == before
+
+
+def test_eval_of_a_run_folder_without_a_checkpoint_says_so(tmp_path, toy_dataset, make_run):
+    run = make_run(tmp_path / "run", "dreamerv2", toy_dataset)
+    (run / "checkpoint.pt").unlink()
+    code, out = cli("eval", "--ckpt", str(run), "--device", "cpu")
+    one_line(code, out, "holds no checkpoint.pt yet", "rerun the command that made it")
+
+
+def test_eval_of_a_file_outside_a_run_folder_names_the_file(tmp_path, toy_dataset):
+    code, out = cli("eval", "--ckpt", str(toy_dataset), "--device", "cpu")
+    one_line(code, out, f"{toy_dataset} is not inside a run folder")
+
+
+@pytest.mark.parametrize("algo", ["dreamerv2-penalty", "dreamerv2-finetune"])
+def test_viz_predictions_looks_inside_the_model_based_variants(tmp_path, toy_dataset, make_run, algo):
+    run = make_run(tmp_path / "run", algo, toy_dataset)
+    out = tmp_path / "p.png"
+    code, text = cli("viz", "predictions", "--ckpt", str(run), "--out", str(out), "--device", "cpu", "--length", "8")
+    assert code == 0, text
+    assert f"({algo} run)" in text and out.exists()
+
+
+class _RunsCode:
+    def __reduce__(self):
+        import os
+
+        return (os.system, ("echo ran",))
+
+
+def test_a_refused_pickle_is_one_line_with_the_whole_reason(tmp_path, toy_dataset, make_run, processes):
+    import torch
+
+    run = make_run(tmp_path / "run", "dreamerv2", toy_dataset)
+    torch.save({"kind": "dreamerv2-offline", "agent": _RunsCode()}, run / "checkpoint.pt")
+    done = processes.run_cli("eval", "--ckpt", str(run), "--device", "cpu")
+    line = processes.last_word(done.stderr, "error: ")  # also: no torch warning before it
+    assert done.returncode == 2 and "ran" not in done.stdout
+    assert "unsupported GLOBAL posix.system whose module posix is blocked." in line, line
+    assert "Weights only load failed" not in line
