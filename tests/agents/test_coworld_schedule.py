@@ -163,7 +163,8 @@ def test_a_target_batch_made_with_the_source_pass_trains_as_the_updates_own_pass
     def no_source_pass(*_: Any, **__: Any) -> None:
         raise AssertionError("the update ran the source model over a batch that carried its pass")
 
-    monkeypatch.setattr(ahead.source.world_model, "embed", no_source_pass)
+    monkeypatch.setattr(ahead.source.model_path, "embed", no_source_pass)
+    monkeypatch.setattr(ahead.source.model_path, "observe", no_source_pass)
     got = ahead.train_target(made_batch)
     assert got == expected
     assert expected["target/coworld/align_kl"] > 0.0
