@@ -66,6 +66,19 @@ class OneOf:
         return "one of " + ", ".join(self.choices) + (f" or {self.pattern_text}" if self.pattern else "")
 
 
+@dataclass(frozen=True)
+class Each:
+    """The valid values of a tuple of numbers: at least one, each within ``range``."""
+
+    range: Range
+
+    def contains(self, value: tuple[float, ...]) -> bool:
+        return len(value) > 0 and all(self.range.contains(item) for item in value)
+
+    def __str__(self) -> str:
+        return f"one or more numbers, each {self.range}"
+
+
 def _number(value: float | None) -> str:
     if value is None:
         return ""
@@ -85,9 +98,9 @@ class WorldModelConfig:
 
     cnn_depth: Annotated[int, AT_LEAST_1] = 48
     """Channels of the first conv layer; layers double it (48-96-192-384)."""
-    encoder_kernels: tuple[int, ...] = (4, 4, 4, 4)
+    encoder_kernels: Annotated[tuple[int, ...], Each(Range(2, 16))] = (4, 4, 4, 4)
     """Kernel of each stride-2 encoder conv layer, one layer each (DreamerV2: 4, 4, 4, 4); e.g. ``3,3,3,3,3``."""
-    decoder_kernels: tuple[int, ...] = (5, 5, 6, 6)
+    decoder_kernels: Annotated[tuple[int, ...], Each(Range(2, 16))] = (5, 5, 6, 6)
     """Kernel of each stride-2 transposed decoder conv from 1 x 1, one layer each; they must end at 64 x 64
     (DreamerV2: 5, 5, 6, 6)."""
     act: Annotated[str, OneOf(("elu", "silu", "relu", "gelu", "tanh"))] = "elu"
@@ -641,9 +654,6 @@ def validate(config: Config) -> None:
 
 def _validate_conv_stacks(wm: WorldModelConfig) -> None:
     """The encoder's kernels leave at least one pixel of a 64 x 64 image; the decoder's end at 64 x 64."""
-    for key, kernels in (("encoder_kernels", wm.encoder_kernels), ("decoder_kernels", wm.decoder_kernels)):
-        if not kernels or not all(2 <= k <= 16 for k in kernels):
-            raise ConfigError(f"config key world_model.{key}={kernels!r} needs one kernel per layer, each 2 to 16")
     side = 64
     for kernel in wm.encoder_kernels:
         side = (side - kernel) // 2 + 1
@@ -662,7 +672,7 @@ def _validate_conv_stacks(wm: WorldModelConfig) -> None:
         )
 
 
-def _constrained_values(node: Any, prefix: str = "") -> Iterable[tuple[str, Any, Range | OneOf]]:
+def _constrained_values(node: Any, prefix: str = "") -> Iterable[tuple[str, Any, Range | OneOf | Each]]:
     hints = typing.get_type_hints(type(node), include_extras=True)
     for f in dataclasses.fields(node):
         value = getattr(node, f.name)
@@ -670,7 +680,7 @@ def _constrained_values(node: Any, prefix: str = "") -> Iterable[tuple[str, Any,
             yield from _constrained_values(value, f"{prefix}{f.name}.")
             continue
         for constraint in getattr(hints[f.name], "__metadata__", ()):
-            if isinstance(constraint, (Range, OneOf)):
+            if isinstance(constraint, (Range, OneOf, Each)):
                 yield prefix + f.name, value, constraint
 
 

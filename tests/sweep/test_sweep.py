@@ -106,7 +106,7 @@ def test_a_failed_run_is_reported_and_the_others_finish(tmp_path):
     log = root / "logs" / "curl-toy_reach_shifted-s1.log"
     assert f"failed: curl-toy_reach_shifted-s1 (log: {log})" in out.stdout
     assert "1/2 runs finished" in out.stdout
-    assert "is unreadable" in log.read_text() and "FAILED (exit code 2)" in log.read_text()
+    assert "is not a coworld run folder" in log.read_text() and "FAILED (exit code 2)" in log.read_text()
     assert (root / "runs" / "curl-toy_reach_shifted-s0" / "eval.json").exists()
 
 
