@@ -61,6 +61,9 @@ DREAMERV2 = {
     "world_model.unimix": 0.0,
     "world_model.kl_balance": 0.8,
     "world_model.free_nats": 1.0,
+    # the GRU cell: DreamerV2's, with a bias and LayerNorm's epsilon at 1e-3
+    "world_model.gru_bias": True,
+    "world_model.gru_eps": 1e-3,
     # the networks: ELU MLPs without LayerNorm, CNN depth 48, 400-unit 4-layer heads, actor and critic
     "world_model.mlp_norm": False,
     "world_model.mlp_act": "elu",
@@ -138,19 +141,3 @@ def test_overriding_another_presets_switch_leaves_the_paper_preset_alone() -> No
     make_config("cpu", ["actor_critic.actor_dist=normal", "world_model.unimix=0.05"])
     paper = to_dict(make_config("paper"))
     assert {dotted: _value(paper, dotted) for dotted in PINNED} == PINNED
-
-
-ANNOUNCED = {"world_model.gru_bias": True, "world_model.gru_eps": 1e-3}
-"""The GRU cell's switches that the plain reference model brings, with the values the paper preset is to take
-(DreamerV2's cell); pinned from the day the keys exist."""
-
-
-@pytest.mark.parametrize("dotted", sorted(ANNOUNCED))
-def test_the_paper_preset_keeps_dreamerv2s_gru_once_the_switch_exists(dotted: str) -> None:
-    """As :func:`test_the_paper_preset_keeps_table_3_and_dreamerv2s_design`, for a key that may not exist yet."""
-    try:
-        value = _value(to_dict(make_config("paper")), dotted)
-    except KeyError:
-        pytest.skip(f"{dotted} is not a config key yet")
-    want = ANNOUNCED[dotted]
-    assert type(value) is type(want) and value == want, f"paper preset {dotted}={value!r}, DreamerV2: {want!r}"
