@@ -61,6 +61,14 @@ DREAMERV2 = {
     "world_model.unimix": 0.0,
     "world_model.kl_balance": 0.8,
     "world_model.free_nats": 1.0,
+    # the conv stacks: 4 x 4 kernels down, 5, 5, 6, 6 up, ELU without normalisation; the loss terms unscaled
+    "world_model.encoder_kernels": (4, 4, 4, 4),
+    "world_model.decoder_kernels": (5, 5, 6, 6),
+    "world_model.act": "elu",
+    "world_model.norm": "none",
+    "world_model.image_scale": 1.0,
+    "world_model.reward_scale": 1.0,
+    "world_model.discount_scale": 1.0,
     # the GRU cell: DreamerV2's, with a bias and LayerNorm's epsilon at 1e-3
     "world_model.gru_bias": True,
     "world_model.gru_eps": 1e-3,
