@@ -21,6 +21,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from coworld.backends import ReferencePath
 from coworld.backends.cpu_kernels import (
     conv_transpose_stride2,
     half_squared_error,
@@ -31,7 +32,6 @@ from coworld.backends.cpu_kernels import (
 from coworld.losses.dreamer import discount_loss, reward_loss
 from coworld.models import world_model as world_model_module
 from coworld.models.networks import ACTIVATIONS, ConvDecoder
-from coworld.models.rssm import State
 from coworld.models.world_model import WorldModel
 
 __all__ = ["CpuPath", "decode_phases", "pixel_affine", "unsupported"]
@@ -80,10 +80,10 @@ def pixel_affine() -> tuple[float, float] | None:
     return scale, shift
 
 
-class CpuPath:
-    """The world model's loss with its image term in the CPU fast path's form, and :meth:`prepare`,
-    :meth:`embed`, :meth:`observe`, with ``world_model``'s weights and the pixel scaling ``scale * x + shift``
-    (:func:`pixel_affine`). The same interface as :class:`coworld.backends.ReferencePath`."""
+class CpuPath(ReferencePath):
+    """The world model's loss with its image term in the CPU fast path's form, and the :meth:`prepare` it reads,
+    with ``world_model``'s weights and the pixel scaling ``scale * x + shift``
+    (:func:`pixel_affine`); ``embed`` and ``observe`` are the reference's."""
 
     name = "cpu"
 
@@ -102,16 +102,6 @@ class CpuPath:
             return batch
         phases = space_to_depth(batch["image"])
         return {**batch, "target": space_to_depth(phases) if self.phase_levels == 2 else phases}
-
-    def embed(self, batch: dict[str, Tensor]) -> Tensor:
-        """The encoder's embeddings ``(B, T, E)`` of a batch's images (the reference's)."""
-        return self.world_model.encode(batch["image"])
-
-    def observe(
-        self, batch: dict[str, Tensor], state: State | None = None, generator: torch.Generator | None = None
-    ) -> tuple[State, State, Tensor]:
-        """:meth:`WorldModel.observe <coworld.models.world_model.WorldModel.observe>` (the reference's)."""
-        return self.world_model.observe(batch, state, generator)
 
     def loss(
         self, batch: dict[str, Tensor], generator: torch.Generator | None = None
