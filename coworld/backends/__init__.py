@@ -129,11 +129,14 @@ _CHECKED: dict[tuple, str] = {}
 
 def _model_key(world_model: WorldModel) -> tuple:
     """What the CPU path's verdict on ``world_model`` depends on: its module tree as printed (layers, sizes,
-    activations, epsilons), the config, and the code its modules and the pixel scaling run (a patched method is
-    another key)."""
+    activations, epsilons), the config, and the code its modules and the pixel scaling run (a patched method, of a
+    class or of one module, is another key)."""
     from coworld.models import world_model as world_model_module
 
-    code = tuple((type(module), getattr(type(module), "forward", None)) for module in world_model.modules())
+    code = tuple(
+        (type(module), getattr(type(module), "forward", None), vars(module).get("forward"))  # an instance's own too
+        for module in world_model.modules()
+    )
     methods = tuple(
         getattr(type(module), name, None)
         for module in (world_model, world_model.rssm)

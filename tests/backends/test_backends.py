@@ -340,3 +340,14 @@ def test_an_explicit_cpu_backend_it_cannot_serve_is_refused_before_anything_is_w
     lines = [line for line in result.output.strip().splitlines() if line]
     assert len(lines) == 1 and "train.backend=cpu cannot compute this model" in lines[0], result.output
     assert not logdir.exists()
+
+
+def test_a_verdict_is_not_reused_for_a_module_patched_on_its_own() -> None:
+    """The verdicts are cached per structure and code: a model like a checked one but with one module's own
+    ``forward`` replaced is checked anew, and the CPU path steps aside for it."""
+    config = make_config("tiny")
+    assert backends.select(build(config), config, CPU, autocast=False).name == "cpu"
+    model = build(config)
+    decoder = model.decoder
+    decoder.forward = lambda feat: 0.5 * ConvDecoder.forward(decoder, feat)  # type: ignore[method-assign]
+    assert backends.select(model, config, CPU, autocast=False).name == "reference"
