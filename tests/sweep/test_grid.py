@@ -89,6 +89,24 @@ def test_toy_centre_table_is_the_toy_cpu_schedule_on_the_centre_pair():
     assert len(spec.runs()) == 4 * 3
 
 
+def test_dmc_cpu_table_gives_every_agent_the_same_target_budget():
+    spec = named_table("dmc-cpu").check()
+    assert spec.pairs == (("walker_walk", "walker_uphill"),) and spec.preset == "cpu" and spec.eval_episodes == 10
+    assert spec.data.policy == "dreamerv2" and spec.data.quality == "medium-replay"
+    runs = spec.runs()
+    for algo in ("coworld", "dreamerv2", "dreamerv2-finetune", "drq-bc"):
+        assert sorted(r.seed for r in runs if r.algo == algo) == [0, 1, 2]
+    config = make_config("cpu", list(spec.overrides))
+    cw, train = config.coworld, config.train
+    target_updates = cw.iterations * cw.target_updates  # CoWorld's, offline and fine-tuned DreamerV2's
+    assert target_updates == 10_000
+    assert cw.target_updates * 2 == cw.source_updates * 5  # Table 3's K1:K2
+    # DrQ+BC samples as many frames as the world-model agents' batches hold
+    assert config.drqbc.updates * config.drqbc.batch_size == target_updates * train.batch_size * train.seq_len
+    # online evaluations are a fraction of the source pretraining's steps, not a multiple of them
+    assert train.eval_every * 4 == cw.pretrain_steps and train.eval_episodes == 5
+
+
 def test_ablation_switches_each_term_off_in_turn():
     spec = build_spec(ablation=True)
     variants = dict(spec.variants)
