@@ -3,8 +3,9 @@
 :func:`write_report` writes into ``out`` (default: the folder itself):
 
 * ``results.csv`` -- one row per run (:mod:`coworld.report.results`);
-* ``report.md`` -- the Table-1-style table with the aggregate row, the ablation and value-check tables, the
-  figures, and which runs are not finished (:mod:`coworld.report.tables`);
+* ``report.md`` -- the Table-1-style table with the aggregate row, the ablation and value-check tables, CoWorld's
+  own diagnostics (:mod:`coworld.report.diagnostics`), the figures, and which runs are not finished
+  (:mod:`coworld.report.tables`);
 * ``curves-<target>.png``, ``value_check.png``, ``ablation.png`` (:mod:`coworld.report.plots`).
 
 It works on what exists: a partial sweep reports its finished runs and draws the curves of all.
@@ -84,6 +85,7 @@ def write_report(root: str | Path, out: str | Path | None = None) -> Report:
 
 def _markdown(root: Path, results: list[RunResult], figures: list[tuple[str, str]], skipped: list[str]) -> str:
     from coworld.report import tables
+    from coworld.report.diagnostics import diagnostics_table
 
     finished = [r for r in results if r.final_return is not None]
     collectors = _collectors(results)
@@ -110,6 +112,19 @@ def _markdown(root: Path, results: list[RunResult], figures: list[tuple[str, str
             " from the same steps (Figure 4(b)).",
             "",
             values,
+            "",
+        ]
+    terms = diagnostics_table(results)
+    if terms:
+        lines += [
+            "## CoWorld's terms",
+            "",
+            "From each CoWorld run's logs: the alignment KL between source and target posteriors on target frames"
+            " (Eq. 3), the source reward head's loss on relabelled target rewards (Eqs. 4-5), the share of imagined"
+            " target states where the source critic caps the target critic (Eq. 6's max-min term binds), and the two"
+            " critics' mean values there; over the run's logs, the last log in brackets.",
+            "",
+            terms,
             "",
         ]
     if figures:

@@ -1,7 +1,8 @@
 """The report's figures (matplotlib, written as PNG without a display).
 
 * learning curves, one figure per pair: evaluation return against target updates, the mean over seeds as a line
-  and mean ± one standard deviation as a band, one line per algorithm (and CoWorld variant);
+  and mean ± one standard deviation as a band, one line per algorithm (and CoWorld variant); beside it each run
+  against its training hours;
 * the value check (Figure 4(b)): per pair, the critic's mean estimate next to the true discounted return, per
   algorithm;
 * the ablation (Figure 4(a)), when the runs have CoWorld variants: mean ± std of the final return per variant.
@@ -16,7 +17,7 @@ from typing import Any
 import numpy as np
 
 from coworld.errors import CoworldError
-from coworld.report.results import ONLINE_ALGO, RunResult, learning_curve
+from coworld.report.results import ONLINE_ALGO, RunResult, learning_curve, wall_clock_curve
 from coworld.report.tables import ALGO_ORDER
 
 
@@ -60,28 +61,43 @@ def curve_runs(results: Sequence[RunResult], target: str) -> tuple[list[RunResul
 
 
 def learning_curves(results: Sequence[RunResult], target: str, path: Path) -> bool:
-    """Plot the learning curves of the runs on ``target``; False (nothing written) when none has evaluations."""
+    """Plot the learning curves of the runs on ``target``; False (nothing written) when none has evaluations.
+
+    Left: the mean ± std over seeds against target updates (env steps for collectors). Right: each run against its
+    training hours, where a two-phase run's source learning counts too.
+    """
     runs, x_label = curve_runs(results, target)
-    fig = _figure(6.0, 4.0)
-    ax = fig.add_subplot()
+    fig = _figure(11.0, 4.0)
+    by_updates, by_clock = fig.subplots(1, 2)
     drawn = False
     for label in _labels(runs):
-        curves = [learning_curve(Path(r.run_dir), r.algo) for r in runs if r.label == label]
-        curves = [c for c in curves if c]
+        labelled = [r for r in runs if r.label == label]
+        curves = [c for c in (learning_curve(Path(r.run_dir), r.algo) for r in labelled) if c]
         if not curves:
             continue
         steps, mean, std = mean_band(curves)
-        line = ax.plot(steps, mean, label=f"{label} ({len(curves)} runs)", marker="o" if len(steps) < 12 else None)
-        ax.fill_between(steps, mean - std, mean + std, alpha=0.2, color=line[0].get_color(), linewidth=0)
+        line = by_updates.plot(
+            steps, mean, label=f"{label} ({len(curves)} runs)", marker="o" if len(steps) < 12 else None
+        )
+        colour = line[0].get_color()
+        by_updates.fill_between(steps, mean - std, mean + std, alpha=0.2, color=colour, linewidth=0)
+        for r in labelled:
+            clock = wall_clock_curve(Path(r.run_dir), r.algo)
+            if clock:
+                hours, values = zip(*clock, strict=True)
+                by_clock.plot(hours, values, color=colour, alpha=0.7, linewidth=1.0)
         drawn = True
     if not drawn:
         return False
     sources = sorted({r.source for r in runs if r.source})
-    ax.set_title(f"{'/'.join(sources)} → {target}" if sources else target)
-    ax.set_xlabel(x_label)
-    ax.set_ylabel("evaluation return (mean ± std over seeds)")
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize="small")
+    fig.suptitle(f"{'/'.join(sources)} → {target}" if sources else target)
+    by_updates.set_xlabel(x_label)
+    by_updates.set_ylabel("evaluation return (mean ± std over seeds)")
+    by_updates.legend(fontsize="small")
+    by_clock.set_xlabel("training hours (each run)")
+    by_clock.set_ylabel("evaluation return")
+    for ax in (by_updates, by_clock):
+        ax.grid(alpha=0.3)
     fig.savefig(path, dpi=120)
     return True
 

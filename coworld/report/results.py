@@ -141,19 +141,40 @@ def _updates(records: list[dict[str, Any]], algo: str) -> int | None:
     return max(steps) if steps else None
 
 
-def _wall_time(records: list[dict[str, Any]]) -> float | None:
-    """Sum over the run's segments (a resumed run's logger restarts its clock) of each segment's last time."""
-    total, last = 0.0, None
+def _elapsed(records: list[dict[str, Any]]) -> list[float | None]:
+    """Training seconds at each record, summed over the run's segments (a resumed run's logger restarts its
+    clock); None for a record without a time."""
+    total, last, out = 0.0, None, []
     for record in records:
         t = record.get("time")
-        if t is None:
-            continue
         if not _is_step(t):
+            out.append(None)
             continue
         if last is not None and t < last:
             total += last
         last = float(t)
-    return None if last is None else total + last
+        out.append(total + last)
+    return out
+
+
+def _wall_time(records: list[dict[str, Any]]) -> float | None:
+    """The run's training seconds (:func:`_elapsed` at its last timed record)."""
+    times = [t for t in _elapsed(records) if t is not None]
+    return times[-1] if times else None
+
+
+def wall_clock_curve(
+    run_dir: Path, algo: str, records: list[dict[str, Any]] | None = None
+) -> list[tuple[float, float]]:
+    """(training hours, evaluation return) of each evaluation during training: :func:`learning_curve` against the
+    clock, which for a two-phase run includes its source agent's online learning."""
+    records = _metrics(run_dir, []) if records is None else records
+    curve = []
+    for record, seconds in zip(records, _elapsed(records), strict=True):
+        value = target_eval_return(record, algo)
+        if value is not None and seconds is not None and math.isfinite(value):
+            curve.append((seconds / 3600, value))
+    return curve
 
 
 def _variant(run_dir: Path, algo: str, problems: list[str]) -> tuple[str, str | None]:
@@ -204,6 +225,12 @@ def _metrics(run_dir: Path, problems: list[str]) -> list[dict[str, Any]]:
     if len(good) < len(records):
         problems.append(f"{run_dir / 'metrics.jsonl'}: {len(records) - len(good)} records without a step skipped")
     return good
+
+
+def read_run_metrics(run_dir: Path) -> list[dict[str, Any]]:
+    """The run's metrics records that have a step; none when metrics.jsonl cannot be read (:func:`load_result`
+    names that problem)."""
+    return _metrics(run_dir, [])
 
 
 def _is_step(value: Any) -> bool:

@@ -17,8 +17,9 @@ from coworld import envs
 from coworld.cli import main
 from coworld.report import results as results_module
 from coworld.report import write_report
+from coworld.report.diagnostics import diagnostics_table, series
 from coworld.report.plots import curve_runs, mean_band
-from coworld.report.results import find_run_dirs, learning_curve, load_result, load_results
+from coworld.report.results import find_run_dirs, learning_curve, load_result, load_results, wall_clock_curve
 from coworld.report.tables import iqm_interval, results_table, value_table
 
 
@@ -159,6 +160,9 @@ def test_curves_keep_the_target_evaluations_of_coworld(tmp_path):
     result = load_result(run)
     assert result.updates == 200  # target updates, not the source's environment steps
     assert result.wall_time_s == pytest.approx(10.0 + 7.0)
+    # against the clock: the second segment's times follow the first's (10 s), in hours
+    hours, values = zip(*wall_clock_curve(run, "coworld"), strict=True)
+    assert hours == pytest.approx((10.0 / 3600, 17.0 / 3600)) and values == (4.0, 6.0)
     steps, mean, std = mean_band([[(100, 1.0), (200, 3.0)], [(100, 3.0), (200, 5.0)], [(100, 2.0)]])
     assert steps.tolist() == [100, 200] and mean.tolist() == [2.0, 4.0]
     assert std.tolist() == pytest.approx([np.std([1, 3, 2]), 1.0])
@@ -245,3 +249,33 @@ def test_a_fine_tuned_run_reports_its_target_updates_and_evaluations_not_its_sou
     make_run(tmp_path, "dv", algo="dreamerv2", target="toy_reach_shifted", seed=0, returns=[10.0])
     header = results_table(load_results(tmp_path)).splitlines()[0]
     assert header.index("drq-bc") < header.index("dreamerv2 ") < header.index("dreamerv2-finetune")  # ALGO_ORDER
+
+
+def test_coworld_diagnostics_summarise_each_term_from_the_logs(tmp_path):
+    records = [
+        {"step": 100, "target/coworld/align_kl": 2.0, "target/coworld/maxmin_active": 0.5,
+         "target/coworld/target_value": 4.0, "target/coworld/source_value": 3.0},
+        {"step": 50, "unit": "source_env_step", "source/coworld/relabel_reward_loss": 0.8},
+        {"step": 200, "target/coworld/align_kl": 0.5, "target/coworld/maxmin_active": 0.1,
+         "target/coworld/target_value": 2.0, "target/coworld/source_value": 5.0},
+        {"step": 90, "unit": "source_env_step", "source/coworld/relabel_reward_loss": 0.2},
+        {"step": 300, "target/coworld/align_kl": float("nan")},  # a non-finite log is not a value
+    ]  # fmt: skip
+    on = make_run(tmp_path, "cw", algo="coworld", source="toy_reach", target="toy_reach_shifted", seed=3,
+                  returns=[1.0], records=records)  # fmt: skip
+    off = [{"step": 100, "target/coworld/align_kl": 1.0}]  # value regulariser and relabelling switched off
+    make_run(tmp_path, "cw-off", algo="coworld", source="toy_reach", target="toy_reach_shifted", seed=4,
+             returns=[1.0], records=off)  # fmt: skip
+    make_run(tmp_path, "dv", algo="dreamerv2", target="toy_reach_shifted", seed=0, returns=[1.0])
+    kl = series(records, "target/coworld/align_kl")
+    assert (kl.first, kl.last, kl.mean, kl.count) == (2.0, 0.5, 1.25, 2)
+    assert series(records, "eval/return") is None
+    table = diagnostics_table(load_results(tmp_path)).splitlines()
+    assert len(table) == 2 + 2  # header, rule, the two CoWorld runs; not the DreamerV2 run
+    pair = "| toy_reach->toy_reach_shifted coworld"
+    assert table[2] == f"{pair} | 3 | 2 → 0.5 | 0.8 → 0.2 | 30.0% (10.0%) | 3 (2) | 4 (5) |"
+    assert table[3] == f"{pair} | 4 | 1 → 1 | – | – | – | – |"
+    assert load_result(on).algo == "coworld"
+    out = CliRunner().invoke(main, ["report", str(tmp_path)])
+    assert out.exit_code == 0, out.output
+    assert "## CoWorld's terms" in (tmp_path / "report.md").read_text()

@@ -1,0 +1,86 @@
+"""CoWorld's own diagnostics, read from its runs' logs: what each domain-collaborative term did.
+
+* Eq. 3, alignment: the KL between the source and the target posteriors on target frames
+  (``target/coworld/align_kl``), at the first and the last log;
+* Eqs. 4-5, relabelling: the source reward head's loss on relabelled target rewards
+  (``source/coworld/relabel_reward_loss``), first and last;
+* Eq. 6, the max-min value regulariser: how often it binds (``target/coworld/maxmin_active``, the fraction of the
+  target agent's imagined states where ``zeta * v_T > v_S``, so the source critic caps the target critic), over the
+  whole run and at the last log; and the two critics' mean values on those states (``target/coworld/target_value``,
+  ``target/coworld/source_value``).
+
+A term that is switched off logs nothing and shows as a dash.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from coworld.report.results import RunResult, read_run_metrics
+
+ALIGN = "target/coworld/align_kl"
+RELABEL = "source/coworld/relabel_reward_loss"
+MAXMIN = "target/coworld/maxmin_active"
+TARGET_VALUE = "target/coworld/target_value"
+SOURCE_VALUE = "target/coworld/source_value"
+
+
+@dataclass(frozen=True)
+class Series:
+    """One logged metric over a run: its first and last value and its mean over every log."""
+
+    first: float
+    last: float
+    mean: float
+    count: int
+
+
+def series(records: Sequence[Mapping[str, Any]], key: str) -> Series | None:
+    """``key``'s finite values in ``records``, in order, summarised; None when the run never logged it."""
+    values = [float(r[key]) for r in records if _finite(r.get(key))]
+    if not values:
+        return None
+    return Series(first=values[0], last=values[-1], mean=sum(values) / len(values), count=len(values))
+
+
+def _finite(value: Any) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def _arrow(s: Series | None) -> str:
+    return "–" if s is None else f"{s.first:.3g} → {s.last:.3g}"
+
+
+def _share(s: Series | None) -> str:
+    return "–" if s is None else f"{100 * s.mean:.1f}% ({100 * s.last:.1f}%)"
+
+
+def _value(s: Series | None) -> str:
+    return "–" if s is None else f"{s.mean:.3g} ({s.last:.3g})"
+
+
+def diagnostics_table(results: Sequence[RunResult]) -> str:
+    """A markdown table, one row per CoWorld run; '' when there is none."""
+    runs = sorted((r for r in results if r.algo == "coworld"), key=lambda r: (r.pair, r.variant, r.seed))
+    if not runs:
+        return ""
+    lines = [
+        "| run | seed | alignment KL, first → last | relabelled reward loss, first → last"
+        " | max-min binds: run (last) | target critic: run (last) | source critic: run (last) |",
+        "|---|---:|---|---|---|---|---|",
+    ]
+    for r in runs:
+        records = read_run_metrics(Path(r.run_dir))
+        cells = [
+            _arrow(series(records, ALIGN)),
+            _arrow(series(records, RELABEL)),
+            _share(series(records, MAXMIN)),
+            _value(series(records, TARGET_VALUE)),
+            _value(series(records, SOURCE_VALUE)),
+        ]
+        lines.append(f"| {r.pair} {r.label} | {r.seed} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
