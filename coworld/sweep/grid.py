@@ -36,7 +36,7 @@ from coworld.errors import ConfigError, CoworldError
 from coworld.training.train import ALGOS, NEEDS_SOURCE, check_config
 
 COLLECT_POLICIES = ("dreamerv2", "random")
-QUALITIES = ("medium-replay", "medium", "expert")
+QUALITIES = ("medium-replay", "medium-expert", "medium", "expert")
 SEED_MAX = 2**32 - 1
 """The largest seed, as every command takes it (``--seed``)."""
 MAX_SEEDS = 1_000
@@ -60,7 +60,7 @@ class DataSpec:
     policy: str = "dreamerv2"
     """'dreamerv2' (DreamerV2 learns online and is recorded) or 'random' (uniform actions)."""
     quality: str = "medium-replay"
-    """dreamerv2 only: medium-replay (the paper's), medium or expert."""
+    """dreamerv2 only: medium-replay (the paper's), medium-expert (the later paper's Table 9), medium or expert."""
     episodes: int | None = None
     """Collect exactly this many episodes (random: required unless ``max_steps``)."""
     max_steps: int | None = None
