@@ -134,10 +134,11 @@ COLLECTORS: dict[str, Callable[[dict[str, Any]], None]] = {
 )
 @click.option(
     "--quality",
-    type=click.Choice(["medium-replay", "medium", "expert"]),
+    type=click.Choice(["medium-replay", "medium-expert", "medium", "expert"]),
     default=None,
-    help="dreamerv2 only: medium-replay (all it experienced while learning; default) or episodes of the"
-    " trained policy (medium, expert; --episodes of them).",
+    help="dreamerv2 only: medium-replay (all it experienced while learning, to the medium level; default),"
+    " medium-expert (the same, on to the expert level) or episodes of the trained policy (medium, expert;"
+    " --episodes of them).",
 )
 @click.option(
     "--preset",
@@ -149,8 +150,8 @@ COLLECTORS: dict[str, Callable[[dict[str, Any]], None]] = {
     "--stop-return",
     type=Number(-1e9, 1e9),
     default=None,
-    help="dreamerv2 only: stop training once evaluation reaches this [default: 1/3 of the task's reference; none"
-    " for --quality expert].",
+    help="dreamerv2 only: stop training once evaluation reaches this [default: 1/3 of the task's reference; the"
+    " reference for --quality medium-expert; none for expert].",
 )
 @click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE", help="dreamerv2 only: config override.")
 @click.option("--device", type=click.Choice(["auto", "cpu", "cuda"]), default="auto", show_default=True)

@@ -74,6 +74,7 @@ def sweep(
     coworld sweep --table toy --dir sweeps/toy --jobs 2              # the CPU table: half an hour on 2 cores
     coworld sweep --table dmc --dir sweeps/dmc --jobs 4 --threads 4  # Table 1 on a GPU machine
     coworld sweep --table dmc --dir /shared/dmc --ray auto --gpus-per-run 0.5
+    coworld sweep --table dmc-me --dir sweeps/dmc-me --jobs 4       # the later paper's Table 9 (medium-expert)
     coworld sweep --pairs walker_walk:walker_uphill --algos coworld,dreamerv2 --seeds 3 --preset tiny --dir D
 
     Rerunning the same command skips finished runs and resumes the others. The exit code is 0 when every run is

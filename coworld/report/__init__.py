@@ -3,9 +3,9 @@
 :func:`write_report` writes into ``out`` (default: the folder itself):
 
 * ``results.csv`` -- one row per run (:mod:`coworld.report.results`);
-* ``report.md`` -- the Table-1-style table with the aggregate row, the ablation and value-check tables, CoWorld's
-  own diagnostics (:mod:`coworld.report.diagnostics`), the figures, and which runs are not finished
-  (:mod:`coworld.report.tables`);
+* ``report.md`` -- the Table-1-style table with the aggregate row, ours beside the later CoWorld paper's published
+  numbers (:mod:`coworld.report.paper`), the ablation and value-check tables, CoWorld's own diagnostics
+  (:mod:`coworld.report.diagnostics`), the figures, and which runs are not finished (:mod:`coworld.report.tables`);
 * ``curves-<target>.png``, ``value_check.png``, ``ablation.png`` (:mod:`coworld.report.plots`).
 
 It works on what exists: a partial sweep reports its finished runs and draws the curves of all.
@@ -100,6 +100,18 @@ def _markdown(root: Path, results: list[RunResult], figures: list[tuple[str, str
     ]
     main = tables.results_table(results)
     lines += ["## Results", "", main or "No finished runs yet.", ""]
+    published = tables.paper_table(results)
+    if published:
+        lines += [
+            "## Beside the published numbers",
+            "",
+            "Ours (mean ± std over seeds) beside the later CoWorld paper's (NeurIPS 2024, arXiv 2305.15260 v4; mean ±"
+            " std of 10 episodes over 3 seeds) for the same pair, algorithm and target-dataset quality. Its columns"
+            " map to our algorithms as `coworld/report/paper.py` says (its Offline DV2 is `dreamerv2-penalty`).",
+            "",
+            published,
+            "",
+        ]
     ablation = tables.results_table(results, variants=True)
     if ablation and len({r.variant for r in results if r.algo == "coworld"}) > 1:
         lines += ["## Ablation (CoWorld terms switched off)", "", ablation, ""]

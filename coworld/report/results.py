@@ -20,6 +20,7 @@ from typing import Any
 
 from coworld import envs
 from coworld.errors import CoworldError, UnknownTaskError
+from coworld.report.paper import Published, published
 from coworld.training.logger import read_metrics
 from coworld.training.run import run_description
 
@@ -58,6 +59,15 @@ class RunResult:
     """Training time logged in metrics.jsonl (summed over resumed segments)."""
     problems: tuple[str, ...] = ()
     """One line per file of the run that could not be read (and was skipped), e.g. ``eval.json: not JSON``."""
+    dataset_quality: str | None = None
+    """Quality of the target dataset it trained on (:func:`dataset_quality`), None where unknown."""
+
+    @property
+    def paper(self) -> Published | None:
+        """The later CoWorld paper's number for this algorithm, pair and dataset quality (:mod:`.paper`), if any."""
+        if self.variant:
+            return None
+        return published(self.algo, self.source, self.target, self.dataset_quality)
 
     @property
     def pair(self) -> str:
@@ -86,7 +96,13 @@ CSV_COLUMNS = (
     "updates",
     "wall_time_s",
     "run_dir",
+    "dataset_quality",
+    "paper_return",
+    "paper_std",
+    "paper_table",
 )
+"""The columns of ``results.csv``; ``paper_*``: the later CoWorld paper's number for the run's algorithm, pair and
+dataset quality, and the table printing it (empty where the paper has none)."""
 
 
 def find_run_dirs(root: str | Path, problems: list[str] | None = None) -> list[Path]:
@@ -253,15 +269,39 @@ def normalized(task: str, value: float | None) -> float | None:
     return None if score is None else float(score)
 
 
+def dataset_quality(path: Any) -> str | None:
+    """The quality of the dataset a run trained on (``run.json``'s ``dataset``): what the file says, or where it
+    cannot be read (moved, another machine's path), what its name says (``<task>-<quality>.h5``, as ``coworld
+    collect`` and a sweep name it); None otherwise."""
+    from coworld.data import QUALITIES
+
+    if not isinstance(path, str) or not path:
+        return None
+    try:
+        import h5py
+
+        with h5py.File(path, "r") as f:  # the attribute alone: opening the dataset would read its every row
+            quality = f.attrs.get("quality")
+        if isinstance(quality, bytes):
+            quality = quality.decode()
+        if quality in QUALITIES:
+            return str(quality)
+    except (OSError, ValueError):
+        pass
+    _, _, quality = Path(path).name.removesuffix(".h5").partition("-")
+    quality = quality.replace("_", "-")
+    return quality if quality in QUALITIES else None
+
+
 def _mean(values: Any) -> float | None:
     if not values:
         return None
     return float(sum(values) / len(values))
 
 
-def load_result(run_dir: Path) -> RunResult:
+def load_result(run_dir: Path, qualities: dict[str, str | None] | None = None) -> RunResult:
     """The :class:`RunResult` of one run folder; a file of it that cannot be read is skipped and named in
-    ``problems``."""
+    ``problems``. ``qualities``: dataset path -> quality, read once per dataset of a report."""
     problems: list[str] = []
     info = run_description(_json_object(run_dir / "run.json", problems)) or {}
     algo, target = str(info["algo"]), str(info["target"])
@@ -315,7 +355,16 @@ def load_result(run_dir: Path) -> RunResult:
         updates=_updates(records, algo),
         wall_time_s=_wall_time(records),
         problems=tuple(problems),
+        dataset_quality=None if info.get("online") else _cached_quality(info.get("dataset"), qualities),
     )
+
+
+def _cached_quality(path: Any, qualities: dict[str, str | None] | None) -> str | None:
+    if qualities is None or not isinstance(path, str):
+        return dataset_quality(path)
+    if path not in qualities:
+        qualities[path] = dataset_quality(path)
+    return qualities[path]
 
 
 def load_results(root: str | Path, problems: list[str] | None = None) -> list[RunResult]:
@@ -324,7 +373,8 @@ def load_results(root: str | Path, problems: list[str] | None = None) -> list[Ru
     dirs = find_run_dirs(root, problems)
     if not dirs:
         raise CoworldError(f"no run folders (with a run.json) under {root}; run `coworld sweep` or `coworld train`")
-    return [load_result(d) for d in dirs]
+    qualities: dict[str, str | None] = {}
+    return [load_result(d, qualities) for d in dirs]
 
 
 def to_csv(results: Iterable[RunResult]) -> str:
@@ -335,5 +385,10 @@ def to_csv(results: Iterable[RunResult]) -> str:
     for result in results:
         row = asdict(result)
         row["pair"] = result.pair
+        number = result.paper
+        if number is not None:
+            row.update(paper_return=number.mean, paper_std=number.std, paper_table=number.where)
+        else:
+            row.update(paper_return=None, paper_std=None, paper_table=None)
         writer.writerow({key: "" if row[key] is None else row[key] for key in CSV_COLUMNS})
     return out.getvalue()

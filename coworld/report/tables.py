@@ -188,3 +188,25 @@ def value_table(results: Sequence[RunResult]) -> str:
                 name = f"{algo} ({variant})" if variant else algo
                 lines.append(f"| {_pair_label(results, target)} | {name} | {estimate:.2f} | {true:.2f} | {len(runs)} |")
     return "\n".join(lines)
+
+
+def paper_table(results: Sequence[RunResult]) -> str:
+    """Ours beside the later CoWorld paper's number (:mod:`coworld.report.paper`), one row per pair and algorithm
+    whose finished runs (as configured) have one: the same algorithm, pair and target-dataset quality."""
+    finished = [r for r in results if r.final_return is not None and r.paper is not None]
+    if not finished:
+        return ""
+    lines = ["| pair | algorithm | dataset | ours | paper | paper's table |", "|---|---|---|---:|---:|---|"]
+    for target in _rows(finished):
+        here = [r for r in finished if r.target == target]
+        for algo in _order({r.algo for r in here}):
+            runs = [r for r in here if r.algo == algo]
+            ours = [float(r.final_return) for r in runs]  # type: ignore[arg-type]
+            number = runs[0].paper
+            assert number is not None
+            lines.append(
+                f"| {_pair_label(results, target)} | {algo} | {runs[0].dataset_quality} | "
+                f"{_fmt(float(np.mean(ours)))} ± {_fmt(float(np.std(ours)))} (n={len(ours)}) | "
+                f"{number.mean:.0f} ± {number.std:.0f} | {number.where} |"
+            )
+    return "\n".join(lines)

@@ -18,6 +18,10 @@ Named grids (:data:`TABLES`):
 * ``toy-centre`` -- the same with the goal at the centre, where no constant action scores: :func:`toy_centre_table`.
 * ``dmc-cpu`` -- walker_walk -> walker_uphill with a medium-replay target, at the scale 2 CPU cores allow:
   :func:`dmc_cpu_table`.
+* ``dmc-mr`` and ``dmc-me`` -- the later CoWorld paper's (NeurIPS 2024) Tables 3 and 9: its six DMC pairs on
+  medium-replay and medium-expert target datasets, with its Table 8 hyperparameters (:func:`later_table`);
+  ``coworld report`` puts its published numbers (:mod:`coworld.report.paper`) beside ours. Its Meta-World ->
+  RoboDesk pairs (:func:`robodesk_table`) join once the RoboDesk tasks are registered.
 """
 
 from __future__ import annotations
@@ -33,10 +37,12 @@ from coworld import envs
 from coworld.budget import check_memory
 from coworld.config import PRESETS, make_config
 from coworld.errors import ConfigError, CoworldError
+from coworld.report import paper
+from coworld.report.paper import PaperTable
 from coworld.training.train import ALGOS, NEEDS_SOURCE, check_config
 
 COLLECT_POLICIES = ("dreamerv2", "random")
-QUALITIES = ("medium-replay", "medium", "expert")
+QUALITIES = ("medium-replay", "medium-expert", "medium", "expert")
 SEED_MAX = 2**32 - 1
 """The largest seed, as every command takes it (``--seed``)."""
 MAX_SEEDS = 1_000
@@ -60,7 +66,7 @@ class DataSpec:
     policy: str = "dreamerv2"
     """'dreamerv2' (DreamerV2 learns online and is recorded) or 'random' (uniform actions)."""
     quality: str = "medium-replay"
-    """dreamerv2 only: medium-replay (the paper's), medium or expert."""
+    """dreamerv2 only: medium-replay (the paper's), medium-expert (the later paper's Table 9), medium or expert."""
     episodes: int | None = None
     """Collect exactly this many episodes (random: required unless ``max_steps``)."""
     max_steps: int | None = None
@@ -420,6 +426,62 @@ def dmc_cpu_table() -> SweepSpec:
     )
 
 
+LATER_EXTRA_ALGOS = ("dreamerv2",)
+"""Run beside the later paper's columns in its tables: offline DreamerV2 without V-D4RL's penalty, the seed paper's
+baseline and every other table's reference (no published number of the later paper is beside it)."""
+
+LATER_DMC_OVERRIDES = (
+    "coworld.beta2=1.5",
+    "coworld.k=0.1",
+    "coworld.alpha=1",
+    "coworld.target_updates=20000",
+    "coworld.source_updates=20000",
+)
+"""The later paper's Table 8, DMC column, on the ``paper`` preset: beta2 1.5; its k 0.9 weighs the true target reward
+in its Eq. 4, ``(1 - k) * pred + k * r_T``, which is our k = 0.1 (``k * pred + (1 - k) * r_T``); alpha 1; 2e4
+target and 2e4 source updates per iteration."""
+
+LATER_ROBODESK_OVERRIDES = ("coworld.beta2=1", "coworld.k=0.7", "coworld.alpha=2")
+"""Table 8, Meta-World / RoboDesk column: beta2 1; its k 0.3, our 0.7; alpha 2; 5e4 target and 2e4 source updates
+per iteration (the ``paper`` preset's)."""
+
+
+def later_table(table: PaperTable, overrides: tuple[str, ...]) -> SweepSpec:
+    """One of the later CoWorld paper's tables (:mod:`coworld.report.paper`) as a grid: its pairs, our algorithms
+    its columns map to plus :data:`LATER_EXTRA_ALGOS`, 3 seeds, 10 evaluation episodes, the ``paper`` preset with its
+    Table 8 hyperparameters, target datasets collected by DreamerV2 at the table's quality.
+
+    An algorithm joins a table where :attr:`~coworld.report.paper.PaperTable.columns` maps a column to it.
+    """
+    return SweepSpec(
+        pairs=table.pairs,
+        algos=(*table.algos(), *LATER_EXTRA_ALGOS),
+        seeds=(0, 1, 2),
+        preset="paper",
+        overrides=overrides,
+        data=DataSpec(policy="dreamerv2", quality=table.quality),
+        eval_episodes=10,
+    )
+
+
+def dmc_medium_replay_table() -> SweepSpec:
+    """The later paper's Table 3: the six DMC pairs (Table 1's five and cheetah run -> uphill), medium-replay."""
+    return later_table(paper.DMC_MEDIUM_REPLAY, LATER_DMC_OVERRIDES)
+
+
+def dmc_medium_expert_table() -> SweepSpec:
+    """Its Table 9: the same pairs with medium-expert target datasets (``coworld collect --quality medium-expert``)."""
+    return later_table(paper.DMC_MEDIUM_EXPERT, LATER_DMC_OVERRIDES)
+
+
+def robodesk_table() -> SweepSpec:
+    """Its Figure 4: Meta-World sources, RoboDesk targets (4-D against 5-D actions), medium-replay.
+
+    Registered in :data:`TABLES` once the RoboDesk tasks exist (:meth:`SweepSpec.check` names every task).
+    """
+    return later_table(paper.META_WORLD_TO_ROBODESK, LATER_ROBODESK_OVERRIDES)
+
+
 TABLES: dict[str, Any] = {
     "toy": toy_table,
     "toy-cpu": toy_cpu_table,
@@ -427,6 +489,8 @@ TABLES: dict[str, Any] = {
     "dmc-cpu": dmc_cpu_table,
     "dmc": lambda: SweepSpec(pairs=TABLE1_PAIRS),
     "metaworld": lambda: SweepSpec(pairs=TABLE2_PAIRS),
+    "dmc-mr": dmc_medium_replay_table,
+    "dmc-me": dmc_medium_expert_table,
     "ablation": lambda: SweepSpec(
         pairs=(("mw_drawer_close", "mw_button_press"),), algos=("coworld", "dreamerv2"), variants=ABLATION
     ),

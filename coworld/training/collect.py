@@ -3,6 +3,14 @@
 * ``medium-replay`` (the default, D4RL's sense): every transition the agent experiences while it learns, from
   the random prefill on, streamed into the dataset as each episode ends, until the evaluation return reaches
   the medium level (``stop_return``, by default a third of the task's reference return) or ``max_steps`` rows.
+* ``medium-expert`` (the later CoWorld paper's, its Appendix B.2): the same stream, continued until the evaluation
+  return reaches the expert level, "the maximum score that the DreamerV2 agent can achieve" (``stop_return``, by
+  default the task's reference return), or ``max_steps`` rows. The dataset's ``collector`` metadata says what it is
+  made of: ``medium_level_episodes`` and ``medium_level_step`` mark where the evaluation first reached the medium
+  level, so its first ``medium_level_episodes`` episodes are the run's medium-replay part and the rest were
+  recorded between the medium and the expert level (neither is set when the medium level was never reached).
+  V-D4RL's medium-expert, the episodes of a medium policy followed by those of an expert one, is
+  ``coworld dataset merge`` of a ``medium`` and an ``expert`` dataset.
 * ``medium`` / ``expert``: the agent is trained the same way (its own experience goes to
   ``<run>/replay.h5``), then ``episodes`` episodes of the trained policy are recorded into the dataset. For
   ``expert`` there is no default ``stop_return``: the agent trains for all ``max_steps``.
@@ -33,7 +41,9 @@ from coworld.training.online import OnlineTrainer
 from coworld.training.run import collector_run_info, prepare_run_dir, preset_warnings, resolve_device, seed_everything
 from coworld.training.train import check_backend
 
-TRAINED_QUALITIES = ("medium-replay", "medium", "expert")
+TRAINED_QUALITIES = ("medium-replay", "medium-expert", "medium", "expert")
+REPLAY_QUALITIES = ("medium-replay", "medium-expert")
+"""The qualities whose dataset is the agent's own experience while it learns (the others record its trained policy)."""
 
 
 @dataclass
@@ -48,10 +58,12 @@ class DreamerCollectSummary:
 def default_stop_return(task: str, quality: str = "medium-replay") -> float | None:
     """When training stops early: at the medium level, a third of the task's reference return
     (:attr:`~coworld.envs.TaskSpec.medium_return`, ``coworld tasks`` lists it), for medium-replay and medium data;
-    never for expert data (the agent trains for all its steps). None where no reference is known."""
+    at the expert level, the reference return itself, for medium-expert data; never for expert data (the agent
+    trains for all its steps). None where no reference is known."""
     if quality == "expert":
         return None
-    return envs.task_spec(task).medium_return
+    spec = envs.task_spec(task)
+    return spec.reference_return if quality == "medium-expert" else spec.medium_return
 
 
 def collect_dreamerv2(
@@ -63,6 +75,7 @@ def collect_dreamerv2(
     overrides: Sequence[str] = (),
     max_steps: int | None = None,
     stop_return: float | None = None,
+    medium_return: float | None = None,
     episodes: int = 10,
     seed: int = 0,
     device: str = "auto",
@@ -75,6 +88,7 @@ def collect_dreamerv2(
     """Train DreamerV2 online in ``task`` and write the dataset ``out`` (see the module docstring).
 
     ``warn`` receives one-line warnings (the paper preset on a CPU) once the request is checked, before any work.
+    ``medium_return`` (medium-expert only) replaces the task's medium level where the dataset's boundary is marked.
     """
     if quality not in TRAINED_QUALITIES:
         raise CoworldError(f"the dreamerv2 collector makes {', '.join(TRAINED_QUALITIES)} datasets, not {quality!r}")
@@ -114,12 +128,15 @@ def collect_dreamerv2(
         "run": str(run_dir),
         "stop_return": stop_return,
     }
+    if quality == "medium-expert":
+        medium_return = spec.medium_return if medium_return is None else medium_return
+        collector["medium_return"] = medium_return  # where medium_level_* mark the medium-replay part's end
     fields = dataset_fields(task)
-    experience = out if quality == "medium-replay" else run_dir / "replay.h5"
+    experience = out if quality in REPLAY_QUALITIES else run_dir / "replay.h5"
     writer = DatasetWriter(
         experience,
         task=task,
-        quality="medium-replay",
+        quality=quality if quality in REPLAY_QUALITIES else "medium-replay",
         collector=collector,
         action_size=spec.action_size,
         resume=resumed or resume,
@@ -131,7 +148,10 @@ def collect_dreamerv2(
         trainer = OnlineTrainer(agent=agent, task=task, config=config, logdir=run_dir, writer=writer, logger=logger)
         trainer.restore()
         try:
-            result = trainer.run(max_steps=limit, stop_return=stop_return, progress=progress)
+            if quality == "medium-expert":
+                result = _train_past_medium(trainer, writer, limit, medium_return, stop_return, progress)
+            else:
+                result = trainer.run(max_steps=limit, stop_return=stop_return, progress=progress)
         finally:
             trainer.close()
         writer.update_metadata(
@@ -141,9 +161,33 @@ def collect_dreamerv2(
             last_eval_return=result.last_eval_return,
         )
         writer.close(complete=True)
-    if quality == "medium-replay":
+    if quality in REPLAY_QUALITIES:
         return DreamerCollectSummary(out, result.episodes, result.steps, result.stop_reason, result.last_eval_return)
     return _record_policy(agent, task, out, quality, episodes, seed, collector, result, fields, resume, compression)
+
+
+def _train_past_medium(
+    trainer: OnlineTrainer,
+    writer: DatasetWriter,
+    limit: int,
+    medium: float | None,
+    stop_return: float | None,
+    progress: bool,
+) -> Any:
+    """Medium-expert collection: train until the medium level, mark it in the dataset, then on to ``stop_return``.
+
+    One run of the trainer in two calls, so the data are the same stream a single call would record; the mark is
+    written once, and a resumed collection that has it goes straight on to the second call.
+    """
+    if medium is not None and "medium_level_step" not in writer.metadata["collector"]:
+        first = trainer.run(max_steps=limit, stop_return=medium, progress=progress)
+        if first.stop_reason.startswith("evaluation return"):
+            writer.update_metadata(
+                medium_level_step=trainer.last_eval_step,
+                medium_level_episodes=writer.num_episodes,
+                medium_level_return=trainer.last_eval,
+            )
+    return trainer.run(max_steps=limit, stop_return=stop_return, progress=progress)
 
 
 def _record_policy(

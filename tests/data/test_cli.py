@@ -125,6 +125,7 @@ def test_merge_concatenates_episodes_and_names_the_quality(tmp_path: Path, helpe
             np.testing.assert_array_equal(got["success"][1:], ep["infos"]["success"])
         sources = data.metadata["collector"]["sources"]
         assert [s["quality"] for s in sources] == ["medium-replay", "expert"]
+        assert [(s["episodes"], s["steps"]) for s in sources] == [(2, 15), (3, 16)]  # what it is made of, in order
     assert CliRunner().invoke(main, ["dataset", "verify", str(out)]).exit_code == 0
 
 

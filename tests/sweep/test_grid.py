@@ -307,3 +307,52 @@ def test_plan_skips_finished_runs_and_complete_datasets(tmp_path, toy_dataset_wr
         "dreamerv2-toy_reach_shifted-s1",
     ]
     assert all(job.needs is None for job in second.jobs)  # the dataset is complete
+
+
+def test_the_later_papers_dmc_tables_are_its_six_pairs_on_two_dataset_qualities():
+    from coworld.report import paper
+
+    for name, quality, columns in (
+        ("dmc-mr", "medium-replay", ["dreamerv2-penalty", "drq-bc", "curl", "dreamerv2-finetune", "coworld"]),
+        ("dmc-me", "medium-expert", ["dreamerv2-penalty", "drq-bc", "dreamerv2-finetune", "coworld"]),
+    ):
+        spec = named_table(name).check()
+        assert spec.pairs == paper.TABLES[name].pairs
+        assert [target for _, target in spec.pairs] == [
+            "walker_downhill", "walker_uphill", "walker_nofoot", "cheetah_downhill", "cheetah_uphill", "cheetah_nopaw"
+        ]  # fmt: skip
+        assert list(spec.algos) == [*columns, "dreamerv2"]  # the paper's columns we have, and offline DreamerV2
+        assert (spec.seeds, spec.eval_episodes, spec.preset) == ((0, 1, 2), 10, "paper")
+        assert (spec.data.policy, spec.data.quality) == ("dreamerv2", quality)
+        cw = make_config(spec.preset, list(spec.overrides)).coworld
+        # Table 8's DMC column: beta2 1.5, its k 0.9 on the true reward (our k weighs the prediction), alpha 1
+        assert (cw.beta2, cw.k, cw.alpha, cw.target_updates, cw.source_updates) == (1.5, 0.1, 1.0, 20_000, 20_000)
+
+
+def test_the_robodesk_table_is_figure_4s_pairs_and_registered_once_its_tasks_are():
+    from coworld import envs
+    from coworld.report import paper
+    from coworld.sweep.grid import TABLES, robodesk_table
+
+    spec = robodesk_table()
+    assert spec.pairs == (
+        ("mw_button_press", "robodesk_push_button"),
+        ("mw_window_close", "robodesk_open_slide"),
+        ("mw_drawer_close", "robodesk_drawer_open"),
+        ("mw_handle_press", "robodesk_upright_block_off_table"),
+    )
+    assert list(spec.algos) == ["coworld", "dreamerv2-penalty", "dreamerv2-finetune", "dreamerv2"]
+    cw = make_config(spec.preset, list(spec.overrides)).coworld
+    assert (cw.beta2, cw.k, cw.alpha) == (1.0, 0.7, 2.0)  # Table 8's Meta-World / RoboDesk column
+    assert {target for target, _ in paper.META_WORLD_TO_ROBODESK.cells} <= {t for _, t in spec.pairs}
+    registered = all(target in envs.TASKS for _, target in spec.pairs)
+    assert ("robodesk" in TABLES) == registered  # add it to TABLES when the RoboDesk tasks arrive
+
+
+def test_an_unknown_table_is_one_line_naming_the_tables(tmp_path):
+    with pytest.raises(CoworldError, match="unknown table 'nope'; choose from .*dmc-mr, dmc-me"):
+        named_table("nope")
+    grid = tmp_path / "grid.toml"
+    grid.write_text('table = "nope"\n')
+    with pytest.raises(CoworldError, match="unknown table 'nope'"):
+        build_spec(**read_grid_file(grid))

@@ -162,3 +162,18 @@ def test_a_rule_train_applies_refuses_a_real_sweep_process_before_collecting(tmp
                              "penalty.model_updates=40", "--dir", str(tmp_path / "s"))  # fmt: skip
     assert done.returncode == 2 and "penalty.model_updates=40" in processes.last_word(done.stderr, "error: ")
     assert not (tmp_path / "s").exists()
+
+
+def test_an_unknown_table_exits_2_naming_the_tables_and_writes_nothing(tmp_path):
+    result = CliRunner().invoke(main, ["sweep", "--table", "nope", "--dir", str(tmp_path / "s")])
+    assert result.exit_code == 2 and "Traceback" not in result.output
+    assert "Invalid value for '--table': 'nope' is not one of" in result.output
+    assert "'dmc-me', 'dmc-mr'" in result.output
+    assert not (tmp_path / "s").exists()
+
+
+def test_an_unknown_table_in_a_grid_file_is_one_line(tmp_path):
+    grid = tmp_path / "grid.toml"
+    grid.write_text('table = "nope"\n')
+    refused(["sweep", "--grid", str(grid), "--dir", str(tmp_path / "s")], "unknown table 'nope'; choose from", "dmc-mr")
+    assert not (tmp_path / "s").exists()

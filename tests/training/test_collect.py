@@ -60,3 +60,55 @@ def test_a_run_stopped_by_its_return_goal_is_not_extended_on_resume(tmp_path: Pa
     assert torch.load(checkpoint, weights_only=True)["updates"] == updates
     with open_dataset(out) as data:
         assert data.complete and data.num_steps == first.steps
+
+
+def test_medium_expert_is_the_learning_stream_on_to_the_expert_level() -> None:
+    spec = envs.task_spec("toy_reach")
+    assert default_stop_return("toy_reach", "medium-expert") == spec.reference_return
+
+
+def test_medium_expert_marks_where_its_medium_replay_part_ends_and_resumes_past_it(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from coworld.data import verify_dataset
+    from coworld.training.online import OnlineTrainer
+
+    out = tmp_path / "toy_reach-medium_expert.h5"
+    # every evaluation reaches the medium level, none the expert level: the mark is the first evaluation, at the
+    # first episode end after the 100-step prefill (toy_reach episodes are 50 steps), and training runs to the end
+    options = {
+        "quality": "medium-expert",
+        "max_steps": 400,
+        "medium_return": -1e9,
+        "stop_return": 1e9,
+        "overrides": (*FAST, "train.eval_every=100"),
+    }
+    real_run, calls = OnlineTrainer.run, []
+
+    def stopped_in_the_second_part(trainer: OnlineTrainer, **kwargs):
+        calls.append(kwargs["stop_return"])
+        if len(calls) == 2:  # the expert part: a stop at step 300, as a Ctrl-C there leaves it
+            real_run(trainer, **{**kwargs, "max_steps": 300})
+            raise KeyboardInterrupt
+        return real_run(trainer, **kwargs)
+
+    monkeypatch.setattr(OnlineTrainer, "run", stopped_in_the_second_part)
+    with pytest.raises(KeyboardInterrupt):
+        collect(out, **options)
+    assert calls == [-1e9, 1e9]
+    with open_dataset(out) as data:
+        assert data.quality == "medium-expert" and not data.complete and data.num_steps == 300
+        mark = {key: value for key, value in data.metadata["collector"].items() if key.startswith("medium_level")}
+    assert mark["medium_level_step"] == 100 and mark["medium_level_episodes"] == 2
+
+    calls.clear()
+    summary = collect(out, resume=True, **options)
+    assert calls == [1e9]  # the mark was made: the resumed collection goes straight on to the expert level
+    assert (summary.steps, summary.episodes, summary.stop_reason) == (400, 8, "max steps")
+    with open_dataset(out) as data:
+        assert data.quality == "medium-expert" and data.complete and data.num_steps == 400
+        collector = data.metadata["collector"]
+    assert {key: collector[key] for key in mark} == mark  # kept as the first run made it
+    assert collector["medium_return"] == -1e9 and collector["stop_return"] == 1e9
+    assert not (tmp_path / "toy_reach-medium_expert.run" / "replay.h5").exists()  # the dataset is the stream itself
+    assert verify_dataset(out) == []
