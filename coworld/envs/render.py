@@ -1,4 +1,4 @@
-"""Offscreen rendering of MuJoCo scenes into small RGB frames (DMC and Meta-World tasks).
+"""Offscreen rendering of MuJoCo scenes into small RGB frames (DMC, Meta-World and RoboDesk tasks).
 
 Each environment owns one :class:`mujoco.Renderer`, i.e. its own OpenGL context, made current before every
 frame. That is what lets several Meta-World environments live in one process and survive one of them being
@@ -61,7 +61,7 @@ class FrameRenderer:
     Args:
         model: the compiled model; its visual quality fields are edited in place for ``quality`` (call before
             anything else renders this model).
-        camera: camera name or id.
+        camera: camera name or id, or a free camera (``mujoco.MjvCamera``).
         size: frame side in pixels.
         quality: see the module docstring.
         rotate_180: turn the frame upside down and mirror it (Meta-World's corner cameras render upside down).
@@ -71,7 +71,7 @@ class FrameRenderer:
         self,
         model: mujoco.MjModel,
         *,
-        camera: str | int,
+        camera: str | int | mujoco.MjvCamera,
         size: int,
         quality: RenderQuality,
         rotate_180: bool = False,
