@@ -15,6 +15,9 @@ on 2 CPU cores:
 * ``fast``: ``standard`` without shadows and reflections. Diff 8.5 walker, 1.5 cheetah, 10.8 window-close:
   without shadows the spot light's dark floor band disappears (mostly floor lighting; the body reads the same).
 
+RoboDesk's scene has three shadow-casting lights: diff 6.2 for ``standard`` and 40 for ``fast`` (one state of a
+random episode of push_button; ``full`` there equals RoboDesk's own frames).
+
 Render-only frames/s measured for full / standard / fast (machine shared with other work, so only the ratios
 mean much): walker 31 / 121 / 754, cheetah 28 / 174 / 849, window-close 9 / 26 / 141. ``standard`` keeps the look
 of the paper's frames at 3-6x the speed of ``full``; ``fast`` is another 3-6x but changes the image visibly. Use

@@ -35,6 +35,7 @@ RoboDesk's definitions, as the later CoWorld paper used them (``reward='dense'``
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -84,6 +85,24 @@ PRESS_DEPTH = -0.00453
 """A button counts as pressed when its light's joint is below this (m)."""
 
 
+class _IKConvergenceFilter(logging.Filter):
+    """Drops dm_control's "Failed to converge" warning of the inverse kinematics.
+
+    At the edge of the arm's reach (an agent pushing outwards, or into the desk) the solver stops short of the
+    target every step; RoboDesk uses the joint positions it reached anyway, and so do we, so the warning says
+    nothing a user can act on and would flood the console during collection and evaluation.
+    """
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return not (record.module == "inverse_kinematics" and record.getMessage().startswith("Failed to converge"))
+
+
+def _quiet_ik_warnings() -> None:
+    logger = logging.getLogger("absl")  # where dm_control's absl.logging calls end up
+    if not any(isinstance(f, _IKConvergenceFilter) for f in logger.filters):
+        logger.addFilter(_IKConvergenceFilter())
+
+
 class RoboDeskEnv(gym.Env[np.ndarray, np.ndarray]):
     """One RoboDesk task seen from RoboDesk's camera.
 
@@ -104,6 +123,7 @@ class RoboDeskEnv(gym.Env[np.ndarray, np.ndarray]):
         import mujoco
         from dm_control.mujoco import Physics
 
+        _quiet_ik_warnings()
         self.task = task
         self.settings = settings
         self.robodesk_task = TASK_NAMES[task.name]

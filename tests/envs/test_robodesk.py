@@ -200,3 +200,20 @@ def test_collect_random_writes_a_dataset_that_verifies(tmp_path, monkeypatch) ->
         assert f["infos/success"].shape == (6,)  # RoboDesk reports success, as Meta-World does
         rewards = f["rewards"][:]
         assert ((rewards >= 0) & (rewards <= 1)).all() and rewards.std() > 0
+
+
+def test_the_solvers_give_up_warning_is_dropped_and_other_warnings_are_not(caplog) -> None:
+    """At the edge of the reach the inverse kinematics stops short every step; its warning would flood the console."""
+    env = make("robodesk_push_button", seed=0, image_size=8, render_quality="fast")
+    from dm_control.utils.inverse_kinematics import qpos_from_site_pose
+
+    env.unwrapped.reset_state(0)
+    with caplog.at_level("WARNING"):
+        far = np.array([0.0, 3.0, 3.0])  # metres beyond the arm's reach: the solver gives up after its 100 steps
+        result = qpos_from_site_pose(env.unwrapped._ik_physics, "end_effector", far, inplace=True)
+        import logging
+
+        logging.getLogger("absl").warning("another warning")
+    env.close()
+    assert not result.success
+    assert [record.getMessage() for record in caplog.records] == ["another warning"]
