@@ -217,3 +217,13 @@ def test_the_solvers_give_up_warning_is_dropped_and_other_warnings_are_not(caplo
     env.close()
     assert not result.success
     assert [record.getMessage() for record in caplog.records] == ["another warning"]
+
+
+def test_a_sweep_grid_takes_robodesk_tasks(tmp_path) -> None:
+    folder = tmp_path / "sweep"
+    args = ["sweep", "--pairs", "robodesk_open_slide:robodesk_push_button", "--algos", "dreamerv2,drq-bc"]
+    result = CliRunner().invoke(main, [*args, "--seeds", "1", "--preset", "tiny", "--dir", str(folder), "--dry-run"])
+    assert result.exit_code == 0, result.output
+    assert "robodesk_push_button-medium_replay.h5" in result.output
+    assert "dreamerv2-robodesk_push_button-s0" in result.output and "drq-bc-robodesk_push_button-s0" in result.output
+    assert not folder.exists()  # a dry run writes nothing
