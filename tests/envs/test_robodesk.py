@@ -72,7 +72,7 @@ def test_a_seed_fixes_the_scene_and_the_frames() -> None:
     actions = np.random.default_rng(0).uniform(-1, 1, (2, 5)).astype(np.float32)
 
     def frames(seed: int) -> np.ndarray:
-        env = make("robodesk_open_slide", seed=seed)
+        env = make("robodesk_open_slide", seed=seed, image_size=16)  # small frames draw faster
         out = [env.reset()[0]] + [env.step(a)[0] for a in actions]
         env.close()
         return np.stack(out)
@@ -80,7 +80,7 @@ def test_a_seed_fixes_the_scene_and_the_frames() -> None:
     first = frames(0)
     np.testing.assert_array_equal(first, frames(0))
     assert not np.array_equal(first[0], frames(1)[0])  # the slide, the objects and the arm start elsewhere
-    env = make("robodesk_open_slide", seed=0)
+    env = make("robodesk_open_slide", seed=0, image_size=16)
     env.reset()
     env.unwrapped.reset_state()  # each reset draws a new scene; reset(seed=...) restarts the sequence
     slide = env.unwrapped.physics.named.data.qpos["slide_joint"][0]
@@ -89,83 +89,80 @@ def test_a_seed_fixes_the_scene_and_the_frames() -> None:
     env.close()
 
 
-def _state(task: str, **qpos: float):
-    """A RoboDesk env reset with seed 0, joints in ``qpos`` set, and the simulator's derived state recomputed."""
-    env = make(task, seed=0, image_size=8, render_quality="fast")
-    env.unwrapped.reset_state(0)
-    physics = env.unwrapped.physics
+@pytest.fixture(scope="module")
+def desk():
+    """One push_button env without real frames (8 x 8, no shadows): its physics serves every task's reward."""
+    env = make("robodesk_push_button", seed=0, image_size=8, render_quality="fast")
+    yield env.unwrapped
+    env.close()
+
+
+def _set(desk, **qpos: float):
+    """The scene of seed 0 with the joints in ``qpos`` set, and the simulator's derived state recomputed."""
+    desk.reset_state(0)
+    physics = desk.physics
     for joint, value in qpos.items():
         physics.named.data.qpos[joint] = value
     physics.forward()
-    return env, physics
+    return physics
 
 
 def _reach(physics, point) -> float:
     return max(0.0, 1.0 - float(np.linalg.norm(physics.named.data.site_xpos["end_effector"] - point)))
 
 
-def test_the_rewards_are_robodesks_dense_terms() -> None:
+def test_the_rewards_are_robodesks_dense_terms(desk) -> None:
     """Known answers from RoboDesk's formulas in set states (coworld/envs/robodesk.py's docstring)."""
-    env, physics = _state("robodesk_open_slide", slide_joint=0.3)
+    physics = _set(desk, slide_joint=0.3)
     handle = physics.named.data.site_xpos["slide_handle"] - [0.15, 0, 0]
     reward, success = task_reward(physics, "open_slide")
     assert reward == pytest.approx(0.9 * (0.75 * 0.5 + 0.25 * _reach(physics, handle)) + 0.1) and not success
-    physics.named.data.qpos["slide_joint"] = 0.58
-    physics.forward()
+    physics = _set(desk, slide_joint=0.58)
     handle = physics.named.data.site_xpos["slide_handle"] - [0.15, 0, 0]
     reward, success = task_reward(physics, "open_slide")
     assert reward == pytest.approx(0.9 * (0.75 * 0.58 / 0.6 + 0.25 * _reach(physics, handle)) + 0.1) and success
-    env.close()
 
-    env, physics = _state("robodesk_drawer_open", drawer_joint=-0.15)
+    physics = _set(desk, drawer_joint=-0.15)
     handle = physics.named.data.geom_xpos["drawer_handle"]
     assert task_reward(physics, "open_drawer") == (pytest.approx(0.375 + 0.25 * _reach(physics, handle)), False)
-    physics.named.data.qpos["drawer_joint"] = -0.25
-    physics.forward()
+    physics = _set(desk, drawer_joint=-0.25)
     assert task_reward(physics, "open_drawer")[1]
-    env.close()
 
-    env, physics = _state("robodesk_push_button")
+    physics = _set(desk)
     button = physics.named.data.xpos["green_button"]
     assert task_reward(physics, "push_green") == (pytest.approx(0.75 * _reach(physics, button)), False)
-    physics.named.data.qpos["green_light"] = -0.0048  # the light follows the pressed button
-    physics.forward()
+    physics = _set(desk, green_light=-0.0048)  # the light follows the pressed button
     assert task_reward(physics, "push_green") == (pytest.approx(0.25 + 0.75 * _reach(physics, button)), True)
-    env.close()
 
-    env, physics = _state("robodesk_upright_block_off_table")
+    physics = _set(desk)
     block = physics.named.data.xpos["upright_block"]
     expected = 0.15 + 0.25 * _reach(physics, block)
     assert task_reward(physics, "upright_block_off_table") == (pytest.approx(expected), False)
     physics.named.data.qpos["upright_block"][2] = 0.3  # on the floor
     physics.forward()
     assert task_reward(physics, "upright_block_off_table")[1]
-    env.close()
 
 
-def _run(task: str, policy: str, steps: int, seed: int) -> tuple[float, bool]:
-    env = make(task, seed=seed, image_size=8, render_quality="fast")
-    sim = env.unwrapped
-    sim.reset_state(seed)
+def _run(desk, policy: str, steps: int, seed: int) -> tuple[float, bool]:
+    desk.reset_state(seed)
     rng = np.random.default_rng(seed)
     total, success, stage = 0.0, False, 0
     for _ in range(steps):
         if policy == "scripted":
-            action, stage = robodesk_expert_action(sim, task, stage)
+            action, stage = robodesk_expert_action(desk, "robodesk_push_button", stage)
         else:
             action = rng.uniform(-1, 1, 5).astype(np.float32)
-        reward, _, step_success = sim.simulate(action)
+        reward, _, step_success = desk.simulate(action)
         total += reward
         success = success or step_success
-    env.close()
     return total, success
 
 
-def test_the_scripted_policy_presses_the_button_and_random_arms_do_not() -> None:
+def test_the_scripted_policy_presses_the_button_and_random_arms_do_not(desk) -> None:
     """The arm reaches and presses the green button through the 5-d end-effector actions; random ones do not."""
     for seed in (0, 1):
-        scripted, pressed = _run("robodesk_push_button", "scripted", 500, seed)
-        random, random_pressed = _run("robodesk_push_button", "random", 500, seed)
+        scripted, pressed = _run(desk, "scripted", 500, seed)
+        random, random_pressed = _run(desk, "random", 500, seed)
         assert pressed and not random_pressed
         assert scripted > random + 20
 
@@ -202,19 +199,17 @@ def test_collect_random_writes_a_dataset_that_verifies(tmp_path, monkeypatch) ->
         assert ((rewards >= 0) & (rewards <= 1)).all() and rewards.std() > 0
 
 
-def test_the_solvers_give_up_warning_is_dropped_and_other_warnings_are_not(caplog) -> None:
+def test_the_solvers_give_up_warning_is_dropped_and_other_warnings_are_not(desk, caplog) -> None:
     """At the edge of the reach the inverse kinematics stops short every step; its warning would flood the console."""
-    env = make("robodesk_push_button", seed=0, image_size=8, render_quality="fast")
+    import logging
+
     from dm_control.utils.inverse_kinematics import qpos_from_site_pose
 
-    env.unwrapped.reset_state(0)
+    desk.reset_state(0)
     with caplog.at_level("WARNING"):
         far = np.array([0.0, 3.0, 3.0])  # metres beyond the arm's reach: the solver gives up after its 100 steps
-        result = qpos_from_site_pose(env.unwrapped._ik_physics, "end_effector", far, inplace=True)
-        import logging
-
+        result = qpos_from_site_pose(desk._ik_physics, "end_effector", far, inplace=True)
         logging.getLogger("absl").warning("another warning")
-    env.close()
     assert not result.success
     assert [record.getMessage() for record in caplog.records] == ["another warning"]
 
