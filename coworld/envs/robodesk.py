@@ -9,7 +9,7 @@ RoboDesk's definitions, as the later CoWorld paper used them (``reward='dense'``
   dm_control's inverse kinematics on joints 1-6; wrist joint 7 moves by ``0.02 * a[3] * 2.9671`` rad; ``a[4]``
   sets both finger targets in [0, 0.04] m. Each agent step holds the joint targets for 10 physics steps of 2 ms
   with gravity compensation (``qfrc_applied = qfrc_bias`` on the arm joints).
-* **Reset**: the drawer starts up to 0.10 closed-to-open, the slide up to 0.20 open, the three objects shifted
+* **Reset**: the drawer starts up to 0.10 m open, the slide up to 0.20 m open, the three objects shifted
   within their ranges, the arm at RoboDesk's pose plus 15% of each actuator's range of uniform noise; all drawn
   from this env's seeded generator (RoboDesk draws from NumPy's global one).
 * **Frames**: RoboDesk's view (free camera 1.8 m from ``(0, 0.535, 1.1)``, azimuth 90, elevation -60) rendered
@@ -18,7 +18,7 @@ RoboDesk's definitions, as the later CoWorld paper used them (``reward='dense'``
   RoboDesk 1.0.0's frame of the same state, pixel for pixel. The scene has three shadow-casting lights, so
   shadows weigh more than in the other tasks (see :mod:`coworld.envs.render`).
 * **Reward**: RoboDesk's dense reward of the task, in [0, 1] per simulator step, as RoboDesk 1.0.0 computes it
-  (the returns the later paper reports come from it). That package records the objects' start positions as views
+  (the package the later paper's code runs). That package records the objects' start positions as views
   of the live positions, so its "other objects did not move" terms always count as met and the "block pushed
   down" term of ``upright_block_off_table`` is always 0; the rewards below are those values. ``reach(p)`` is
   ``clip(1 - |end effector - p|, 0, 1)``.
@@ -69,7 +69,7 @@ HOME_POSE = np.array([-0.30, -0.4, 0.28, -2.5, 0.13, 1.87, 0.91, 0.01, 0.01])
 END_EFFECTOR_SCALE = 0.01
 """Metres of end-effector motion per unit of action."""
 WRIST_SCALE = 0.02
-"""Fraction of the wrist's control range moved per unit of action."""
+"""Per unit of action the wrist turns this fraction of its control range's half-width (2.9671 rad)."""
 PHYSICS_STEPS = 10
 """Physics steps (2 ms each) per simulator step."""
 
@@ -88,9 +88,9 @@ PRESS_DEPTH = -0.00453
 class _IKConvergenceFilter(logging.Filter):
     """Drops dm_control's "Failed to converge" warning of the inverse kinematics.
 
-    At the edge of the arm's reach (an agent pushing outwards, or into the desk) the solver stops short of the
-    target every step; RoboDesk uses the joint positions it reached anyway, and so do we, so the warning says
-    nothing a user can act on and would flood the console during collection and evaluation.
+    Where the target is out of the arm's reach, the solver stops short of it; RoboDesk uses the joint positions it
+    reached anyway, and so do we, so the warning says nothing a user can act on. A trained agent's evaluation
+    printed it hundreds of times.
     """
 
     def filter(self, record: logging.LogRecord) -> bool:
