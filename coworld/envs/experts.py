@@ -12,10 +12,15 @@ drawing frames, episode ``i`` seeded ``i``. ``benchmarks/reference_returns.py`` 
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from coworld.envs.registry import make, task_spec
 from coworld.errors import ConfigError
+
+if TYPE_CHECKING:
+    from coworld.envs.robodesk import RoboDeskEnv
 
 METAWORLD_POLICIES = {
     "mw_window_close": "SawyerWindowCloseV3Policy",
@@ -106,7 +111,7 @@ def _metaworld(task: str, episodes: int) -> tuple[list[float], list[bool]]:
     return returns, successes
 
 
-def robodesk_expert_action(env: object, task: str, stage: int) -> tuple[np.ndarray, int]:
+def robodesk_expert_action(env: RoboDeskEnv, task: str, stage: int) -> tuple[np.ndarray, int]:
     """The waypoint policy's action in the current state of a RoboDesk env, and the waypoint it now heads for.
 
     Moves the end effector straight at waypoint ``stage`` (at most 1 cm, the action's reach, per step) and
@@ -115,7 +120,7 @@ def robodesk_expert_action(env: object, task: str, stage: int) -> tuple[np.ndarr
     from coworld.envs.robodesk import END_EFFECTOR_SCALE
 
     waypoints = ROBODESK_WAYPOINTS[task]
-    data = env.physics.named.data  # type: ignore[attr-defined]
+    data = env.physics.named.data
     effector = data.site_xpos["end_effector"]
 
     def point(index: int) -> np.ndarray:
