@@ -14,7 +14,7 @@ out=${OUT_DIR:-out/quickstart}
 mkdir -p "$out"
 
 $coworld tasks
-for task in walker_uphill cheetah_nopaw mw_door_close toy_reach; do
+for task in walker_uphill cheetah_nopaw mw_door_close robodesk_push_button toy_reach; do
   $coworld render --task "$task" --frames 3 --out "$out/frames/$task"
 done
 

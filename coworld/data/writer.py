@@ -57,7 +57,7 @@ from coworld.errors import ConfigError, DatasetError, StorageError
 from coworld.storage import WRITE_ERRNOS, failure_errno, failure_reason, room_problem
 from coworld.text import count
 
-_VERSIONED_PACKAGES = ("coworld", "numpy", "h5py", "torch", "gymnasium", "mujoco", "dm-control", "metaworld")
+_VERSIONED_PACKAGES = ("coworld", "numpy", "h5py", "torch", "gymnasium", "mujoco", "dm-control", "metaworld", "pillow")
 _SMALL_FILTER: dict[str, Any] = {}
 
 

@@ -1,4 +1,4 @@
-"""The task registry: every source and target task of the paper plus two toy pairs, and :func:`make`.
+"""The task registry: every source and target task of the paper, the later paper's RoboDesk targets, two toy pairs.
 
 Every task is a Gymnasium env whose observation is the image itself: ``Box(0, 255, (S, S, 3), uint8)`` RGB,
 ``S = 64`` by default. Actions: ``Box(-1, 1, (A,), float32)``. Episodes never terminate; they truncate after
@@ -20,6 +20,8 @@ Returns in :class:`TaskSpec`:
   - Meta-World has no published DreamerV2 return for these tasks; the stand-in is the larger of the mean return
     of Meta-World's scripted expert policy on our setup (10 episodes, ``benchmarks/reference_returns.py``) and
     the best mean return any agent reaches on the task in the CoWorld paper's Table 2.
+  - RoboDesk has no published return either: our scripted policy's mean return where it solves the task
+    (push_button), else the dense reward's ceiling (see ``_ROBODESK_REFERENCE``).
   - Toy tasks: the scripted :meth:`~coworld.envs.toy.ToyReachEnv.expert_action` policy.
 * ``random_return`` -- mean return of uniformly random actions (how measured: comments at ``_DMC`` and ``_TOY``).
   Meta-World's have a large spread (drawer-close 1334 +- 1788: random arms sometimes shut the drawer).
@@ -37,7 +39,7 @@ from coworld.errors import ConfigError, UnknownTaskError
 if TYPE_CHECKING:
     import gymnasium as gym
 
-Family = Literal["dmc", "metaworld", "toy"]
+Family = Literal["dmc", "metaworld", "robodesk", "toy"]
 
 
 @dataclass(frozen=True)
@@ -64,10 +66,16 @@ class TaskSpec:
 
     @property
     def embodiment(self) -> str:
-        """The body the agent controls: ``walker``/``cheetah`` (DMC), ``sawyer`` (every Meta-World task), ``dot``."""
+        """The body the agent controls: ``walker``/``cheetah`` (DMC), ``sawyer`` (Meta-World), ``franka`` (RoboDesk),
+        ``dot`` (toy)."""
         if self.family == "dmc":
             return self.name.split("_")[0]
-        return {"metaworld": "sawyer", "toy": "dot"}[self.family]
+        return {"metaworld": "sawyer", "robodesk": "franka", "toy": "dot"}[self.family]
+
+    @property
+    def has_success(self) -> bool:
+        """Whether the env reports ``info["success"]`` (Meta-World and RoboDesk tasks)."""
+        return self.family in ("metaworld", "robodesk")
 
     @property
     def medium_return(self) -> float | None:
@@ -146,6 +154,32 @@ _METAWORLD_REFERENCE = {
     "mw_assembly": (1193.5, 1397.0),
 }
 
+# RoboDesk tasks (coworld/envs/robodesk.py): our name, RoboDesk's task name (with RoboDesk's dense reward, as the
+# later CoWorld paper used them), random_return (measured as _DMC's, without drawing frames:
+# `benchmarks/reference_returns.py --robodesk --episodes 10`).
+_ROBODESK = [
+    ("robodesk_push_button", "push_green", 227.5),
+    ("robodesk_open_slide", "open_slide", 172.3),
+    ("robodesk_drawer_open", "open_drawer", 152.3),
+    ("robodesk_upright_block_off_table", "upright_block_off_table", 139.4),
+]
+
+# RoboDesk has no published DreamerV2 return. Our scripted policies (coworld.envs.experts.ROBODESK_WAYPOINTS, 10
+# episodes, same command) reach: push_button 394.1 (pressed 10/10), open_slide 224.4 (0/10 opened), drawer_open
+# 157.8 (0/10), upright_block_off_table 175.8 (1/10). Where one solves the task its return is the stand-in; where
+# none does, the dense reward's ceiling (500 steps at the reward's per-step maximum: 1, or 0.4 for the block, whose
+# reward as RoboDesk 1.0.0 computes it is 0.15 + 0.25 * reach).
+_ROBODESK_CEILING = "no published return and no scripted policy of ours solves it; stand-in: the dense reward's ceiling"
+_ROBODESK_REFERENCE: dict[str, tuple[float, str]] = {
+    "robodesk_push_button": (
+        394.1,
+        "no published return; stand-in: our scripted policy (presses the button 10/10), mean of 10 episodes",
+    ),
+    "robodesk_open_slide": (500.0, f"{_ROBODESK_CEILING} (500 steps x 1)"),
+    "robodesk_drawer_open": (500.0, f"{_ROBODESK_CEILING} (500 steps x 1)"),
+    "robodesk_upright_block_off_table": (200.0, f"{_ROBODESK_CEILING} (500 steps x 0.4)"),
+}
+
 # Toy returns: 200 episodes, seeds 0-199, the env's own seeded action sampler (tests/envs/test_toy.py).
 _TOY = [
     # name, modification, reference_return (scripted expert), random_return
@@ -177,6 +211,10 @@ def _build_tasks() -> dict[str, TaskSpec]:
         reference, source = _metaworld_reference(name)
         base = f"Meta-World {mw_name}"
         tasks.append(TaskSpec(name, "metaworld", 4, 500, 1, "", base, reference, random_return, source))
+    for name, robodesk_name, random_return in _ROBODESK:
+        reference, source = _ROBODESK_REFERENCE[name]
+        base = f"RoboDesk {robodesk_name} (dense reward)"
+        tasks.append(TaskSpec(name, "robodesk", 5, 500, 1, "", base, reference, random_return, source))
     for name, modification, reference_return, random_return in _TOY:
         base = "NumPy dot-to-goal reaching"
         source = "scripted expert policy, mean of 200 episodes"
@@ -222,6 +260,7 @@ _COMMON_OVERRIDES = ("image_size", "action_repeat", "episode_length")
 _OVERRIDES: dict[str, tuple[str, ...]] = {
     "dmc": (*_COMMON_OVERRIDES, "render_quality"),
     "metaworld": (*_COMMON_OVERRIDES, "render_quality"),
+    "robodesk": (*_COMMON_OVERRIDES, "render_quality"),
     "toy": _COMMON_OVERRIDES,
 }
 
@@ -267,6 +306,10 @@ def _builder(family: Family) -> Callable[[TaskSpec, EnvSettings, int], gym.Env]:
         from coworld.envs.meta_world import make_metaworld
 
         return make_metaworld
+    if family == "robodesk":
+        from coworld.envs.robodesk import make_robodesk
+
+        return make_robodesk
     from coworld.envs.toy import make_toy
 
     return make_toy

@@ -255,7 +255,7 @@ def evaluate(
         task=task,
         returns=returns,
         lengths=lengths,
-        successes=successes if spec.family == "metaworld" else None,
+        successes=successes if spec.has_success else None,
         value_estimate=estimates if want_values else None,
         value_true=trues if want_values else None,
         discount=discount if want_values else None,

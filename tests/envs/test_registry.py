@@ -41,7 +41,7 @@ def test_spec_fields_are_consistent() -> None:
     for name, task in TASKS.items():
         assert task.name == name
         assert (task.modification == "") == (
-            task.name in {"walker_walk", "cheetah_run", "toy_reach"} or task.family == "metaworld"
+            task.name in {"walker_walk", "cheetah_run", "toy_reach"} or task.family in ("metaworld", "robodesk")
         )
         if task.family == "dmc":
             assert task.episode_length * task.action_repeat == 1000

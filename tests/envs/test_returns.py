@@ -35,3 +35,17 @@ def test_recorded_metaworld_expert_return() -> None:
     returns, successes = expert_returns("mw_button_press", 10)
     assert np.mean(returns) == pytest.approx(_METAWORLD_REFERENCE["mw_button_press"][0], abs=0.05)
     assert all(successes)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["robodesk_push_button", "robodesk_open_slide"])
+def test_recorded_robodesk_returns(name: str) -> None:
+    """As recorded in the registry by benchmarks/reference_returns.py --robodesk: random 10 episodes, and the
+    scripted policy's return that stands in for push_button's reference."""
+    from coworld.envs.experts import expert_returns, robodesk_random_returns
+    from coworld.envs.registry import _ROBODESK_REFERENCE
+
+    assert np.mean(robodesk_random_returns(name, 10)) == pytest.approx(task_spec(name).random_return, abs=0.05)
+    if name == "robodesk_push_button":
+        returns, successes = expert_returns(name, 10)
+        assert np.mean(returns) == pytest.approx(_ROBODESK_REFERENCE[name][0], abs=0.05) and all(successes)
