@@ -265,6 +265,7 @@ TOY_OVERRIDES = (
     "drqbc.checkpoint_every=600",
     "drqbc.eval_episodes=5",
     "penalty.model_updates=750",
+    "lompo.model_updates=750",
 )
 """The toy schedule on the ``tiny`` preset (see :func:`toy_table`)."""
 
@@ -326,6 +327,8 @@ TOY_CPU_OVERRIDES = tuple(
     "drqbc.checkpoint_every=1000",
     "penalty.model_updates=1000",
     "penalty.ensemble=3",
+    "lompo.model_updates=1000",
+    "lompo.ensemble=3",
 )
 """The ``toy-cpu`` schedule on the ``cpu`` preset: its world-model agents as the preset has them (source pretrain
 4,000 env steps, 4 iterations of 500 target updates); the model-free baselines at the ``toy`` table's sizes, networks
