@@ -283,14 +283,12 @@ def toy_table() -> SweepSpec:
     critic (Eq. 6) carry the source's values over.
 
     Size. Every algorithm gets the same target budget: 5 iterations of 300 target updates (1,500 updates), the
-    offline DreamerV2 and its two variants the same 1,500 updates (V-D4RL's penalised one spends the first 750 on
-    its world model, the fine-tuned one first pretrains in the source as CoWorld's source does), CURL, CURL+CQL
-    and DrQ+BC 3,000 of their cheaper updates. CoWorld's source pretrains for 2,000 environment steps and makes 100
-    updates per iteration. Each run ends with a 10-episode
-    evaluation. Measured on 2 shared CPU cores (docs/reproducing.md), before DrQ+BC and the two DreamerV2 variants
-    joined:
-    one seed of the four others took about 16 CPU-minutes, CoWorld's run 7 of them; their 3 seeds fit in half an
-    hour with ``--jobs 2``.
+    offline DreamerV2, its variants and LOMPO the same 1,500 updates (V-D4RL's penalised one and LOMPO spend the
+    first 750 on their world model, the fine-tuned ones first pretrain in the source as CoWorld's source does),
+    CURL, CURL+CQL and DrQ+BC 3,000 of their cheaper updates. CoWorld's source pretrains for 2,000 environment
+    steps and makes 100 updates per iteration. Each run ends with a 10-episode evaluation. Measured on 2 shared CPU
+    cores (docs/reproducing.md), before DrQ+BC, LOMPO and the three DreamerV2 variants joined: one seed of the four
+    others took about 16 CPU-minutes, CoWorld's run 7 of them; their 3 seeds fit in half an hour with ``--jobs 2``.
     """
     return SweepSpec(
         pairs=(("toy_reach", "toy_reach_shifted"),),

@@ -124,3 +124,34 @@ def test_state_dict_round_trip_through_weights_only_load() -> None:
     expected = agent.train(batch)
     torch.manual_seed(3)
     assert clone.train(batch) == pytest.approx(expected)
+
+
+def test_the_latent_actor_critic_learns_the_best_action_of_a_one_step_task(monkeypatch) -> None:
+    """The update alone, on transitions that end at once with reward ``-||a - (1, -1)||^2``: Q learns the reward and
+    the actor climbs it to the best action, a corner of the action box, from around the centre where it starts. (An
+    optimum inside the box is overshot: the tanh actor runs to the bound while Q is still about linear, and its
+    gradient vanishes there, as a DDPG actor's does.)"""
+    agent = _agent("lompo.batch_size=64")
+    feat_size, best = agent.world_model.feat_size, torch.tensor([1.0, -1.0])
+    gen = torch.Generator().manual_seed(0)
+
+    def transitions() -> dict[str, torch.Tensor]:
+        feat = torch.randn(64, feat_size, generator=gen)
+        action = torch.rand(64, 2, generator=gen) * 2 - 1
+        reward = -(action - best).square().sum(-1)
+        return {"feat": feat, "action": action, "next_feat": feat, "reward": reward, "not_done": torch.zeros(64)}
+
+    monkeypatch.setattr(agent, "real_transitions", lambda post, batch: transitions())
+    seen = {"raw": torch.zeros(64), "spread": torch.zeros(64)}
+    monkeypatch.setattr(agent, "imagined_transitions", lambda post: (transitions(), seen))
+    probe = torch.randn(256, feat_size, generator=gen)
+
+    def distance() -> float:
+        with torch.no_grad():
+            return float((agent.actor_critic.actor.action(probe) - best).norm(dim=-1).mean())
+
+    before = distance()
+    for _ in range(300):
+        agent.train_latent_actor_critic({}, {})
+    after = distance()
+    assert after < 0.15 and after < before / 3, (before, after)

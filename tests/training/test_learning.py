@@ -148,20 +148,23 @@ def test_tiny_dreamerv2_penalty_learns_the_shifted_target_offline(tmp_path, toy_
     assert len(target) == 2 and target[-1] > max(random, target[0]) + 10.0, (target, random)
 
 
+@pytest.mark.slow
 def test_tiny_lompo_learns_the_shifted_target_offline(tmp_path, toy_dataset_writer):
     """LOMPO (3 heads, weight 1) on the toy pair's target alone, 20 random toy_reach_shifted episodes, through
-    `coworld train`: 300 world-model updates, then 900 updates of its latent actor-critic on real and penalised
-    imagined transitions. It beats a random policy there.
+    `coworld train`: 300 world-model updates, then 1,700 updates of its latent actor-critic on real and penalised
+    imagined transitions. It beats a random policy there. (CI's fast representative is the one-step task of
+    tests/agents/test_lompo.py.)
 
-    Measured: evaluations 21.3 / 1.7 / 15.2 / 28.3 after 300 / 600 / 900 / 1,200 updates (the first is the untrained
-    actor's constant action), random 5.3; with weight 0, 21.3 / 1.5 / 1.5 / 29.7. At V-D4RL's weight 5 the penalty
-    (5 x 0.1 a step) outweighs the toy's rewards (0.1 a step) and 300 updates of the actor-critic ended at 2.1."""
+    Measured (this command, `--seed 0` and `--seed 1`): evaluations 15.4 / 27.5 and 7.6 / 20.6 after 1,000 / 2,000
+    updates, random 5.3; at 2,000 updates of 3,000 the seed-0 run then read 20.9. Fewer updates learned too little:
+    1,200 (900 of the actor-critic) gave 28.3 on seed 0 but 2.7 on seed 1. At V-D4RL's weight 5 the penalty
+    (5 x 0.1 a step) outweighs the toy's rewards (0.1 a step): after 300 actor-critic updates, 2.1."""
     sets = ["train.eval_every=100000", "train.eval_episodes=10", "lompo.model_updates=300", "lompo.ensemble=3"]
-    sets += ["lompo.weight=1", "coworld.iterations=4", "coworld.target_updates=300"]
+    sets += ["lompo.weight=1", "coworld.iterations=2", "coworld.target_updates=1000"]
     target = _train_offline_on_the_shifted_target(tmp_path, toy_dataset_writer, "lompo", sets)
     random = _random_return_on_the_shifted_target()
     print(f"LOMPO on toy_reach_shifted: evaluations {target}, random {random:.1f}")
-    assert len(target) == 4 and target[-1] > random + 10.0, (target, random)
+    assert len(target) == 2 and target[-1] > random + 10.0, (target, random)
 
 
 @pytest.mark.slow
