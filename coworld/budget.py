@@ -63,9 +63,17 @@ def _dreamer(config: Config, algo: str) -> list[Term]:
         # imagination: every start state rolled out for the horizon
         Term(FLOAT * train.batch_size * train.seq_len * ac.horizon * (feat + ac.units), "actor_critic.horizon"),
     ]
-    if algo == "dreamerv2-penalty":
+    if algo in ("dreamerv2-penalty", "lompo"):
         per_head = wm.deter * wm.hidden + wm.hidden * latent
-        terms.append(Term(TRAINED * config.penalty.ensemble * per_head, "penalty.ensemble"))
+        section = "penalty" if algo == "dreamerv2-penalty" else "lompo"
+        terms.append(Term(TRAINED * getattr(config, section).ensemble * per_head, f"{section}.ensemble"))
+    if algo == "lompo":
+        lompo = config.lompo
+        layers = lompo.actor_layers + 2 * lompo.critic_layers
+        terms.append(Term(TRAINED * 3 * (feat + layers * lompo.units) * lompo.units, "lompo.units"))
+    if algo == "dreamerv2-finetune-ewc":  # the source weights and their Fisher information, beside the networks
+        world_model = 3 * wm.deter * (wm.hidden + wm.deter) + 16 * 42 * wm.cnn_depth**2
+        terms.append(Term(FLOAT * 2 * world_model, "world_model.deter"))
     return terms
 
 

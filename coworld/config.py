@@ -455,6 +455,64 @@ class PenaltyConfig:
 
 
 @dataclass(frozen=True)
+class LompoConfig:
+    """LOMPO (Rafailov et al., 2021): a latent actor-critic trained on real latent transitions of the dataset and on
+    short rollouts of an ensemble of latent dynamics, their reward lowered by the ensemble's disagreement.
+
+    Values from V-D4RL's ``baselines/lompo/run.py`` (github.com/conglu1997/v-d4rl), named after its keys. The world
+    model is this project's DreamerV2 (``world_model``) and the run's length offline DreamerV2's
+    (``coworld.iterations`` x ``coworld.target_updates``).
+    """
+
+    ensemble: Annotated[int, Range(2)] = 7
+    """Latent dynamics heads ``deter -> z`` (``num_models: 7``)."""
+    weight: Annotated[float, NON_NEGATIVE] = 5.0
+    """lambda: imagined reward ``r - lambda * std_k log p_k(z')`` (``lmbd: 5.0``, ``penalty_type: log_prob``)."""
+    model_updates: Annotated[int, NON_NEGATIVE] = 25_000
+    """Updates at the start that train the world model (and heads) alone; after them the world model is frozen and
+    only the actor-critic learns (``model_train_steps: 25000``)."""
+    horizon: Annotated[int, AT_LEAST_1] = 5
+    """Steps of each latent rollout (``horizon: 5``)."""
+    batch_size: Annotated[int, AT_LEAST_1] = 256
+    """Real latent transitions per update, and as many imagined ones (``agent_batch_size: 256`` of each)."""
+    units: Annotated[int, AT_LEAST_1] = 256
+    """Units per hidden layer of the actor and the Q-functions (``num_units: 256``)."""
+    actor_layers: Annotated[int, NON_NEGATIVE] = 4
+    """Hidden layers of the deterministic actor (``ActorNetwork(..., 4, num_units)``)."""
+    critic_layers: Annotated[int, NON_NEGATIVE] = 3
+    """Hidden layers of each of the two Q-functions (``DenseNetwork(1, 3, num_units)``)."""
+    actor_lr: Annotated[float, POSITIVE] = 3e-4
+    """Actor learning rate (``actor_lr: 3e-4``)."""
+    critic_lr: Annotated[float, POSITIVE] = 3e-4
+    """Q-functions' learning rate (``q_lr: 3e-4``)."""
+    discount: Annotated[float, Range(0, 1, low_open=True)] = 0.99
+    """gamma (``discount: 0.99``)."""
+    tau: Annotated[float, Range(0, 1, low_open=True)] = 5e-3
+    """Polyak rate of the target Q-functions, every update (``tau: 5e-3``, ``target_update_interval: 1``)."""
+    expl_noise: Annotated[float, NON_NEGATIVE] = 0.2
+    """Std of the Gaussian noise on the actor's actions in rollouts and when acting to train
+    (``expl_amount: 0.2``, ``expl: additive_gaussian``); evaluation acts without it."""
+    grad_clip: Annotated[float, POSITIVE] = 100.0
+    """Global gradient-norm clip of actor and Q-functions (``grad_clip: 100.0``)."""
+
+
+@dataclass(frozen=True)
+class EwcConfig:
+    """DreamerV2 fine-tuned with elastic weight consolidation (Kirkpatrick et al., 2017): after pretraining in the
+    source, every network's loss on the target data gains ``weight / 2 * sum_i F_i (theta_i - theta*_i)^2`` toward
+    the source weights ``theta*``, ``F`` the diagonal Fisher information estimated on the source's experience.
+
+    The later CoWorld paper names the baseline (DV2 Finetune-EWC) without its settings; the values here are this
+    project's choice (docs/algorithms.md)."""
+
+    weight: Annotated[float, NON_NEGATIVE] = 1.0
+    """lambda of EWC. ``F`` estimates the Fisher of one step's loss, so 1 weighs keeping the source's fit as much as
+    one more target step's loss (Kirkpatrick et al.'s scale)."""
+    fisher_batches: Annotated[int, AT_LEAST_1] = 50
+    """Source replay batches (``train.batch_size`` x ``train.seq_len``) averaged into the Fisher estimate."""
+
+
+@dataclass(frozen=True)
 class Config:
     """Everything a run needs besides its task names and paths."""
 
@@ -481,6 +539,8 @@ class Config:
     graph on a GPU (its launches at once), 'max-autotune' also times kernel choices."""
     drqbc: DrqBcConfig = field(default_factory=DrqBcConfig)
     penalty: PenaltyConfig = field(default_factory=PenaltyConfig)
+    lompo: LompoConfig = field(default_factory=LompoConfig)
+    ewc: EwcConfig = field(default_factory=EwcConfig)
 
 
 PRESETS: dict[str, dict[str, Any]] = {
@@ -547,6 +607,13 @@ PRESETS: dict[str, dict[str, Any]] = {
         "coworld.iterations": 4,
         "coworld.target_updates": 500,
         "coworld.source_updates": 250,
+        # LOMPO's latent actor-critic at the actor-critic's widths here; half the run's 2,000 updates for its model
+        "lompo.model_updates": 1000,
+        "lompo.batch_size": 64,
+        "lompo.units": 64,
+        "lompo.actor_layers": 2,
+        "lompo.critic_layers": 2,
+        "ewc.fisher_batches": 20,
     },
     # Small enough that a whole collect -> train -> eval runs on 2 CPU cores in minutes.
     "tiny": {
@@ -596,6 +663,13 @@ PRESETS: dict[str, dict[str, Any]] = {
         "drqbc.checkpoint_every": 100,
         "penalty.ensemble": 3,
         "penalty.model_updates": 10,
+        "lompo.ensemble": 3,
+        "lompo.model_updates": 10,
+        "lompo.batch_size": 32,
+        "lompo.units": 64,
+        "lompo.actor_layers": 2,
+        "lompo.critic_layers": 2,
+        "ewc.fisher_batches": 5,
         "curl.num_filters": 8,
         "curl.num_layers": 2,
         "curl.feature_dim": 16,

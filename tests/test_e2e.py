@@ -300,3 +300,24 @@ def test_kill_during_collect_then_resume(tmp_path):
         assert len(set(starts)) == len(starts)  # no episode written twice
         assert data.metadata["collector"]["algorithm"] == "dreamerv2"
     assert torch.load(checkpoint, weights_only=True)["updates"] > updates_at_kill  # the agent continued
+
+
+@pytest.mark.parametrize("algo", ["lompo", "dreamerv2-finetune-ewc"])
+def test_lompo_and_the_ewc_fine_tuned_dreamerv2_train_on_a_random_dataset_and_eval(tmp_path, algo):
+    """The issue's commands: a random dataset of 5 episodes, `train --preset tiny`, `eval --ckpt`."""
+    data = tmp_path / "D.h5"
+    cli("collect", "--task", "toy_reach_shifted", "--policy", "random", "--episodes", "5", "--out", str(data))
+    run = tmp_path / algo
+    source = ["--source", "toy_reach", *FAST, "--set", "coworld.pretrain_steps=200"] if algo != "lompo" else FAST
+    cli("train", "--algo", algo, "--target", "toy_reach_shifted", "--dataset", str(data), "--preset", "tiny",
+        "--logdir", str(run), "--no-progress", *source)  # fmt: skip
+    state = torch.load(run / "checkpoint.pt", weights_only=True)
+    assert state["kind"] == algo and state["updates"] == 40  # the tiny preset's 2 x 20 target updates
+    keys = set().union(*(record.keys() for record in read_metrics(run)))
+    if algo == "lompo":  # 10 model updates, then its latent actor-critic on penalised imagined transitions
+        assert {"lompo/spread", "lompo/penalised_reward", "critic/q"} <= keys
+    else:  # the source weights and their Fisher taken, then each network held toward them
+        assert {"ewc/fisher_world_model", "wm/ewc", "actor/ewc", "critic/ewc"} <= keys
+        assert set(state["agent"]["ewc"]["fisher"]) == {"world_model", "actor", "critic"}
+    proc = cli("eval", "--ckpt", str(run), "--episodes", "2", "--device", "cpu")
+    assert "toy_reach_shifted: return" in proc.stdout and (run / "eval.json").exists()

@@ -77,7 +77,16 @@ DREAMER_SCHEDULE = "--set coworld.iterations=10 --set coworld.target_updates=10"
 PENALTY = ["--algo", "dreamerv2-penalty", *DREAMER_SCHEDULE, "--set", "penalty.model_updates=15"]
 FINETUNE = ["--algo", "dreamerv2-finetune", "--source", "toy_reach", "--set", "train.prefill=100"]
 FINETUNE += ["--set", "coworld.pretrain_steps=200", *DREAMER_SCHEDULE]
-OFFLINE = {"curl": CURL, "drq-bc": DRQ_BC, "dreamerv2-penalty": PENALTY, "dreamerv2-finetune": FINETUNE}
+LOMPO = ["--algo", "lompo", *DREAMER_SCHEDULE, "--set", "lompo.model_updates=15"]
+EWC = ["--algo", "dreamerv2-finetune-ewc", *FINETUNE[2:]]
+OFFLINE = {
+    "curl": CURL,
+    "drq-bc": DRQ_BC,
+    "dreamerv2-penalty": PENALTY,
+    "dreamerv2-finetune": FINETUNE,
+    "lompo": LOMPO,
+    "dreamerv2-finetune-ewc": EWC,
+}
 """Algorithms whose checkpoint counts its updates at the top level (the offline loop's)."""
 COWORLD = (
     "--algo coworld --source toy_reach --set train.prefill=100 --set coworld.pretrain_steps=200"
@@ -92,6 +101,8 @@ COWORLD = (
         pytest.param("drq-bc", 2, id="drq-bc-2-kills"),
         pytest.param("dreamerv2-penalty", 3, id="dreamerv2-penalty-3-kills", marks=pytest.mark.slow),
         pytest.param("dreamerv2-finetune", 3, id="dreamerv2-finetune-3-kills", marks=pytest.mark.slow),
+        pytest.param("lompo", 3, id="lompo-3-kills", marks=pytest.mark.slow),
+        pytest.param("dreamerv2-finetune-ewc", 3, id="dreamerv2-finetune-ewc-3-kills", marks=pytest.mark.slow),
         pytest.param("coworld", 5, id="coworld-5-kills", marks=pytest.mark.slow),
     ],
 )
@@ -127,7 +138,8 @@ def test_train_killed_at_random_moments(
     if algo in OFFLINE:
         assert state["updates"] == (150 if algo in ("curl", "drq-bc") else 100)
         # the agent resumed with the loop, not from zero (the fine-tuned one also counts its source updates)
-        source = load_checkpoint(run / "source" / "checkpoint.pt")["updates"] if algo == "dreamerv2-finetune" else 0
+        fine_tuned = algo in ("dreamerv2-finetune", "dreamerv2-finetune-ewc")
+        source = load_checkpoint(run / "source" / "checkpoint.pt")["updates"] if fine_tuned else 0
         assert state["agent"]["updates"] == state["updates"] + source
     else:
         assert state["progress"]["iteration"] == 3 and state["agent"]["updates"] == 30

@@ -245,6 +245,7 @@ class DreamerV2:
         *,
         is_terminal: Tensor | np.ndarray | None = None,
         imagined_reward: ImaginedReward | None = None,
+        extra_loss: Callable[[], dict[str, Tensor]] | None = None,
     ) -> dict[str, float]:
         """One actor and one critic step on trajectories imagined from every posterior state in ``post``.
 
@@ -252,8 +253,10 @@ class DreamerV2:
         critic loss, see :meth:`ActorCritic.losses`; give it parameters that need no gradient (or wrap its
         network in :func:`coworld.models.networks.frozen_parameters`). ``is_terminal (B, T)``: true
         continuation of the start states. ``imagined_reward``: replaces the reward head's reward of the imagined
-        states (see :data:`ImaginedReward`). The slow critic is refreshed after the optimiser steps, per
-        ``slow_target_every`` (DreamerV2's order: the first update copies the stepped critic whole).
+        states (see :data:`ImaginedReward`). ``extra_loss() -> {name: weighted scalar loss}``: terms added to the
+        actor's and critic's loss and logged under their names (EWC's pull toward the source weights). The slow
+        critic is refreshed after the optimiser steps, per ``slow_target_every`` (DreamerV2's order: the first update
+        copies the stepped critic whole).
         """
         ac = self.actor_critic
         start = flatten_states(post)
@@ -263,9 +266,13 @@ class DreamerV2:
             if imagined_reward is not None:
                 traj["reward"] = imagined_reward(traj)
             terms, metrics = ac.losses(self.world_model, traj, value_regulariser)
+            extras = extra_loss() if extra_loss is not None else {}
+        loss = terms["actor"] + terms["critic"]
+        for term in extras.values():
+            loss = loss + term
         self.actor_opt.zero_grad(set_to_none=True)
         self.critic_opt.zero_grad(set_to_none=True)
-        (terms["actor"] + terms["critic"]).backward()
+        loss.backward()
         clip = self.config.actor_critic.grad_clip
         metrics["actor/grad_norm"] = torch.nn.utils.clip_grad_norm_(ac.actor.parameters(), clip)
         metrics["critic/grad_norm"] = torch.nn.utils.clip_grad_norm_(ac.critic.parameters(), clip)
@@ -274,6 +281,7 @@ class DreamerV2:
         ac.update_slow_target()
         metrics["actor/loss"] = terms["actor"].detach()
         metrics["critic/loss"] = terms["critic"].detach()
+        metrics.update({name: term.detach() for name, term in extras.items()})
         return _to_floats(metrics)
 
     # ---------------------------------------------------------------------------------------- checkpointing

@@ -31,7 +31,7 @@ def pretrain_on_source(agent: DreamerV2, job: Any, *, logger: Logger, progress: 
     """
     config = job.config
     logdir = Path(job.logdir)
-    writer = source_replay_writer(logdir, job.source, algorithm="dreamerv2-finetune", seed=config.seed)
+    writer = source_replay_writer(logdir, job.source, algorithm=job.algo, seed=config.seed)
     with writer:
         trainer = make_source_trainer(agent, job.source, config=config, logdir=logdir, writer=writer, logger=logger)
         try:

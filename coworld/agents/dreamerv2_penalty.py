@@ -36,6 +36,9 @@ __all__ = ["PenaltyDreamerV2"]
 class PenaltyDreamerV2(DreamerV2):
     """DreamerV2 with V-D4RL's ensemble-disagreement reward penalty (reads ``config.penalty``)."""
 
+    section = "penalty"
+    """The config section with ``ensemble`` and ``model_updates`` (LOMPO's agent, a subclass, reads ``lompo``)."""
+
     def __init__(
         self,
         *,
@@ -45,16 +48,16 @@ class PenaltyDreamerV2(DreamerV2):
         device: torch.device | str | None = None,
     ) -> None:
         super().__init__(config=config, action_size=action_size, image_shape=image_shape, device=device)
-        wm = config.world_model
+        wm, size = config.world_model, getattr(config, self.section).ensemble
         self.ensemble = DynamicsEnsemble(
-            size=config.penalty.ensemble, deter=wm.deter, hidden=wm.hidden, stoch=wm.stoch, classes=wm.classes
+            size=size, deter=wm.deter, hidden=wm.hidden, stoch=wm.stoch, classes=wm.classes
         ).to(self.device)
         self.ensemble_opt = _optimizer(self.ensemble.parameters(), lr=wm.lr, eps=wm.eps, decay=wm.weight_decay)
 
     @property
     def model_phase(self) -> bool:
         """Whether the next update trains the world model (True) or the actor-critic (False)."""
-        return self.updates < self.config.penalty.model_updates
+        return self.updates < getattr(self.config, self.section).model_updates
 
     def train(self, batch: Mapping[str, np.ndarray | Tensor]) -> dict[str, float]:
         """One update of the current phase: world model and heads, or actor-critic on the penalised reward."""

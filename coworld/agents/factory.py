@@ -23,6 +23,14 @@ def make_agent(algo: str, *, config: Config, action_size: int, device: torch.dev
         from coworld.agents.dreamerv2_penalty import PenaltyDreamerV2
 
         return PenaltyDreamerV2(config=config, action_size=action_size, device=device)
+    if algo == "lompo":
+        from coworld.agents.lompo import Lompo
+
+        return Lompo(config=config, action_size=action_size, device=device)
+    if algo == "dreamerv2-finetune-ewc":
+        from coworld.agents.dreamerv2_ewc import EwcDreamerV2
+
+        return EwcDreamerV2(config=config, action_size=action_size, device=device)
     if algo == "drq-bc":
         from coworld.agents.drq_bc import DrqBc
 

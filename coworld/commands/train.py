@@ -1,5 +1,5 @@
-"""``coworld train``: CoWorld or a baseline (offline DreamerV2 and its variants, CURL, CURL+CQL, DrQ+BC) on a
-target dataset."""
+"""``coworld train``: CoWorld or a baseline (offline DreamerV2 and its variants, LOMPO, CURL, CURL+CQL, DrQ+BC) on
+a target dataset."""
 
 from __future__ import annotations
 
@@ -20,7 +20,7 @@ RESUME = "rerun the same command to resume"
 @click.option(
     "--source",
     default=None,
-    help=f"Online source task ({' and '.join(NEEDS_SOURCE)} only; the others ignore it), e.g. walker_walk.",
+    help=f"Online source task ({', '.join(NEEDS_SOURCE)} only; the others ignore it), e.g. walker_walk.",
 )
 @click.option(
     "--dataset",
@@ -61,7 +61,8 @@ RESUME = "rerun the same command to resume"
 def train(target, source, dataset, algo, preset, logdir, seed, device, overrides, force, progress) -> None:
     """Train CoWorld or a baseline on a dataset.
 
-    Learns from a fixed target dataset (CoWorld and dreamerv2-finetune also learn online in --source).
+    Learns from a fixed target dataset (CoWorld, dreamerv2-finetune and dreamerv2-finetune-ewc also learn online
+    in --source).
     Rerunning the same command on the same --logdir resumes from the last checkpoint (also after Ctrl-C, SIGTERM,
     a kill or a full disk). Docs: docs/algorithms.md (what each algorithm computes), docs/usage.md.
     """

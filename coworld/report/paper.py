@@ -12,8 +12,9 @@ How the paper's columns map to this project's algorithms (its Appendix E says wh
   disagreement: ``dreamerv2-penalty``. This project's plain ``dreamerv2`` (the seed paper's baseline) has no column.
 * "DrQ+BC": ``drq-bc``. "CURL": ``curl``. "DV2 Finetune" (Table 9: "Finetune"): ``dreamerv2-finetune``.
   "CoWorld": ``coworld`` (Meta-World -> RoboDesk: the best-source CoWorld, the source named by the pair).
-* No algorithm of ours (None): "CQL" (V-D4RL's DrQ-v2 with CQL's regulariser, not our CURL+CQL), "LOMPO",
-  "LOMPO Finetune", and the multi-source CoWorld. When ``lompo`` exists, its mapping is the one line to change.
+* "LOMPO": ``lompo``.
+* No algorithm of ours (None): "CQL" (V-D4RL's DrQ-v2 with CQL's regulariser, not our CURL+CQL), "LOMPO
+  Finetune", and the multi-source CoWorld.
 """
 
 from __future__ import annotations
@@ -103,7 +104,7 @@ DMC_MEDIUM_REPLAY = PaperTable(
         ("DrQ+BC", "drq-bc"),
         ("CQL", None),
         ("CURL", "curl"),
-        ("LOMPO", None),
+        ("LOMPO", "lompo"),
         ("DV2 Finetune", "dreamerv2-finetune"),
         ("LOMPO Finetune", None),
         ("CoWorld", "coworld"),
@@ -148,7 +149,7 @@ DMC_MEDIUM_EXPERT = PaperTable(
     columns=(
         ("Offline DV2", "dreamerv2-penalty"),
         ("DrQ+BC", "drq-bc"),
-        ("LOMPO", None),
+        ("LOMPO", "lompo"),
         ("Finetune", "dreamerv2-finetune"),
         ("CoWorld", "coworld"),
     ),

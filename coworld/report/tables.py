@@ -20,7 +20,17 @@ import numpy as np
 from coworld.errors import CoworldError
 from coworld.report.results import RunResult
 
-ALGO_ORDER = ("curl", "curl-cql", "drq-bc", "dreamerv2", "dreamerv2-penalty", "dreamerv2-finetune", "coworld")
+ALGO_ORDER = (
+    "curl",
+    "curl-cql",
+    "drq-bc",
+    "dreamerv2",
+    "dreamerv2-penalty",
+    "lompo",
+    "dreamerv2-finetune",
+    "dreamerv2-finetune-ewc",
+    "coworld",
+)
 """Columns in the paper's order (model-free, then model-based, CoWorld last); other algorithms follow."""
 
 

@@ -271,6 +271,7 @@ TOY_OVERRIDES = (
     "drqbc.checkpoint_every=600",
     "drqbc.eval_episodes=5",
     "penalty.model_updates=750",
+    "lompo.model_updates=750",
 )
 """The toy schedule on the ``tiny`` preset (see :func:`toy_table`)."""
 
@@ -288,14 +289,12 @@ def toy_table() -> SweepSpec:
     critic (Eq. 6) carry the source's values over.
 
     Size. Every algorithm gets the same target budget: 5 iterations of 300 target updates (1,500 updates), the
-    offline DreamerV2 and its two variants the same 1,500 updates (V-D4RL's penalised one spends the first 750 on
-    its world model, the fine-tuned one first pretrains in the source as CoWorld's source does), CURL, CURL+CQL
-    and DrQ+BC 3,000 of their cheaper updates. CoWorld's source pretrains for 2,000 environment steps and makes 100
-    updates per iteration. Each run ends with a 10-episode
-    evaluation. Measured on 2 shared CPU cores (docs/reproducing.md), before DrQ+BC and the two DreamerV2 variants
-    joined:
-    one seed of the four others took about 16 CPU-minutes, CoWorld's run 7 of them; their 3 seeds fit in half an
-    hour with ``--jobs 2``.
+    offline DreamerV2, its variants and LOMPO the same 1,500 updates (V-D4RL's penalised one and LOMPO spend the
+    first 750 on their world model, the fine-tuned ones first pretrain in the source as CoWorld's source does),
+    CURL, CURL+CQL and DrQ+BC 3,000 of their cheaper updates. CoWorld's source pretrains for 2,000 environment
+    steps and makes 100 updates per iteration. Each run ends with a 10-episode evaluation. Measured on 2 shared CPU
+    cores (docs/reproducing.md), before DrQ+BC, LOMPO and the three DreamerV2 variants joined: one seed of the four
+    others took about 16 CPU-minutes, CoWorld's run 7 of them; their 3 seeds fit in half an hour with ``--jobs 2``.
     """
     return SweepSpec(
         pairs=(("toy_reach", "toy_reach_shifted"),),
@@ -332,6 +331,8 @@ TOY_CPU_OVERRIDES = tuple(
     "drqbc.checkpoint_every=1000",
     "penalty.model_updates=1000",
     "penalty.ensemble=3",
+    "lompo.model_updates=1000",
+    "lompo.ensemble=3",
 )
 """The ``toy-cpu`` schedule on the ``cpu`` preset: its world-model agents as the preset has them (source pretrain
 4,000 env steps, 4 iterations of 500 target updates); the model-free baselines at the ``toy`` table's sizes, networks
@@ -426,9 +427,10 @@ def dmc_cpu_table() -> SweepSpec:
     )
 
 
-LATER_EXTRA_ALGOS = ("dreamerv2",)
-"""Run beside the later paper's columns in its tables: offline DreamerV2 without V-D4RL's penalty, the seed paper's
-baseline and every other table's reference (no published number of the later paper is beside it)."""
+LATER_EXTRA_ALGOS = ("dreamerv2", "dreamerv2-finetune-ewc")
+"""Run beside the later paper's columns in its tables, with no published number of its own there: offline DreamerV2
+without V-D4RL's penalty (the seed paper's baseline and every other table's reference) and the EWC fine-tuning (the
+later paper reports it on Meta-World only)."""
 
 LATER_DMC_OVERRIDES = (
     "coworld.beta2=1.5",

@@ -1,9 +1,11 @@
-"""Offline baselines on the target dataset: offline DreamerV2 and its variants, CURL / CURL+CQL and DrQ+BC.
+"""Offline baselines on the target dataset: offline DreamerV2 and its variants, LOMPO, CURL / CURL+CQL and DrQ+BC.
 
-Offline DreamerV2, V-D4RL's penalised DreamerV2 and the fine-tuned DreamerV2 get the same number of target updates
-as CoWorld's target agent (``coworld.iterations * coworld.target_updates``), evaluated and checkpointed once per
-CoWorld iteration's worth of updates, so they are compared at equal cost. The fine-tuned DreamerV2 first learns
-online in the source task (:func:`coworld.agents.dreamerv2_finetune.pretrain_on_source`).
+Offline DreamerV2, V-D4RL's penalised DreamerV2, LOMPO and the fine-tuned DreamerV2 (with or without EWC) get the
+same number of target updates as CoWorld's target agent (``coworld.iterations * coworld.target_updates``),
+evaluated and checkpointed once per CoWorld iteration's worth of updates, so they are compared at equal cost. The
+fine-tuned DreamerV2 first learns online in the source task (:func:`coworld.agents.dreamerv2_finetune.
+pretrain_on_source`); with EWC it then takes its source weights and their Fisher information
+(:func:`coworld.agents.dreamerv2_ewc.consolidate_on_source`).
 """
 
 from __future__ import annotations
@@ -51,7 +53,7 @@ def train_offline(job: TrainJob, *, device: torch.device, resumed: bool, progres
         def make_sampler(seed: int):
             return iter(dataset.sampler(config.train.batch_size, config.train.seq_len, seed=seed))
 
-        discount = config.actor_critic.discount
+        discount = config.lompo.discount if job.algo == "lompo" else config.actor_critic.discount
     elif job.algo == "drq-bc":
         from coworld.agents.drq_bc import make_sampler as drq_sampler
 
@@ -86,6 +88,10 @@ def train_offline(job: TrainJob, *, device: torch.device, resumed: bool, progres
             from coworld.agents.dreamerv2_finetune import pretrain_on_source
 
             pretrain_on_source(agent, job, logger=logger, progress=progress)
+            if job.algo == "dreamerv2-finetune-ewc":
+                from coworld.agents.dreamerv2_ewc import consolidate_on_source
+
+                consolidate_on_source(agent, job, logger=logger)
         result = trainer.run(progress=progress)
     dataset.close()
     return {"logdir": str(job.logdir), "updates": result.updates, "last_eval_return": result.last_eval_return}

@@ -18,10 +18,20 @@ from coworld.config import Config, make_config
 from coworld.data.collect import default_dataset_path
 from coworld.errors import CoworldError, DatasetError
 
-ALGOS = ("coworld", "dreamerv2", "curl", "curl-cql", "drq-bc", "dreamerv2-penalty", "dreamerv2-finetune")
+ALGOS = (
+    "coworld",
+    "dreamerv2",
+    "curl",
+    "curl-cql",
+    "drq-bc",
+    "dreamerv2-penalty",
+    "dreamerv2-finetune",
+    "lompo",
+    "dreamerv2-finetune-ewc",
+)
 MODEL_FREE = ("curl", "curl-cql", "drq-bc")
-NEEDS_SOURCE = ("coworld", "dreamerv2-finetune")
-MODEL_BASED = ("coworld", "dreamerv2", "dreamerv2-penalty", "dreamerv2-finetune")
+NEEDS_SOURCE = ("coworld", "dreamerv2-finetune", "dreamerv2-finetune-ewc")
+MODEL_BASED = ("coworld", "dreamerv2", "dreamerv2-penalty", "dreamerv2-finetune", "lompo", "dreamerv2-finetune-ewc")
 """The algorithms that train DreamerV2's world model (and read ``train.backend``)."""
 """Algorithms that also learn online in a source task (``--source``); the others learn from the target dataset
 alone."""
@@ -34,6 +44,8 @@ CHECKPOINT_KINDS = {
     "drq-bc": "drq-bc",
     "dreamerv2-penalty": "dreamerv2-penalty",
     "dreamerv2-finetune": "dreamerv2-finetune",
+    "lompo": "lompo",
+    "dreamerv2-finetune-ewc": "dreamerv2-finetune-ewc",
 }
 
 
@@ -178,13 +190,19 @@ def check_resumable(run_dir: Path, config: Config, info: dict[str, Any]) -> None
 
 def check_schedule(algo: str, config: Config) -> None:
     """The rules between config keys that only one algorithm reads (one line on what to change)."""
-    if algo == "dreamerv2-penalty":
+    if algo in ("dreamerv2-penalty", "lompo"):
+        section = "penalty" if algo == "dreamerv2-penalty" else "lompo"
+        model_updates = getattr(config, section).model_updates
         total = config.coworld.iterations * config.coworld.target_updates
-        if config.penalty.model_updates >= total:
+        if model_updates >= total:
             raise CoworldError(
-                f"penalty.model_updates={config.penalty.model_updates} leaves none of the run's {total} updates"
+                f"{section}.model_updates={model_updates} leaves none of the run's {total} updates"
                 " (coworld.iterations x coworld.target_updates) to the actor-critic; lower it or lengthen the run"
             )
+    if algo == "lompo" and config.train.seq_len < 2:
+        raise CoworldError(
+            "lompo learns from consecutive steps of the dataset's sequences, so train.seq_len must be at least 2"
+        )
 
 
 IMAGE_SHAPE = (64, 64, 3)

@@ -18,7 +18,14 @@ from coworld import envs
 from coworld.config import Config
 from coworld.errors import CoworldError
 
-WORLD_MODEL_ALGOS = ("coworld", "dreamerv2", "dreamerv2-penalty", "dreamerv2-finetune")
+WORLD_MODEL_ALGOS = (
+    "coworld",
+    "dreamerv2",
+    "dreamerv2-penalty",
+    "dreamerv2-finetune",
+    "lompo",
+    "dreamerv2-finetune-ewc",
+)
 _KEYS = ("image", "action", "reward", "is_first", "is_last", "is_terminal")
 
 

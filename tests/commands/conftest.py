@@ -21,7 +21,7 @@ def make_run():
     from coworld.config import make_config, to_dict
     from coworld.training.checkpoint import save_checkpoint
     from coworld.training.run import prepare_run_dir
-    from coworld.training.train import CHECKPOINT_KINDS
+    from coworld.training.train import CHECKPOINT_KINDS, NEEDS_SOURCE
 
     TARGET = "toy_reach_shifted"
 
@@ -31,7 +31,7 @@ def make_run():
         """A run folder of ``algo`` as `coworld train` describes it, holding an untrained checkpoint of
         ``checkpoint_of`` (default: ``algo``) trained on ``task``."""
         config = make_config("tiny", ["device=cpu"])
-        source = "toy_reach" if algo in ("coworld", "dreamerv2-finetune") else None
+        source = "toy_reach" if algo in NEEDS_SOURCE else None
         info = {"algo": algo, "source": source, "target": TARGET, "dataset": str(dataset), "preset": "tiny"}
         prepare_run_dir(folder, config, info)
         made = checkpoint_of or algo

@@ -13,6 +13,7 @@ from coworld.budget import check_memory, estimate
 from coworld.cli import main
 from coworld.config import make_config
 from coworld.errors import ConfigError
+from coworld.training.train import ALGOS
 
 TARGET = "toy_reach_shifted"
 
@@ -60,6 +61,8 @@ def test_a_dataset_shorter_than_a_sequence_is_refused_before_pretraining(tmp_pat
     ("algo", "override", "key"),
     [
         ("dreamerv2-penalty", "penalty.ensemble=1000000000", "penalty.ensemble"),
+        ("lompo", "lompo.ensemble=1000000000", "lompo.ensemble"),
+        ("lompo", "lompo.units=10000000", "lompo.units"),
         ("drq-bc", "drqbc.frame_stack=1000000", "drqbc.frame_stack"),
         ("dreamerv2", "world_model.deter=1000000000", "world_model.deter"),
     ],
@@ -82,7 +85,7 @@ def test_a_sizes_refusal_as_a_real_process_is_quick(tmp_path, toy_dataset, proce
 
 def test_the_memory_estimate_passes_every_preset_and_refuses_past_the_machine():
     for preset in ("paper", "cpu", "tiny"):
-        for algo in ("coworld", "dreamerv2", "dreamerv2-penalty", "dreamerv2-finetune", "curl", "drq-bc"):
+        for algo in ALGOS:
             check_memory(algo, make_config(preset), available=32 * 2**30)  # what a paper-size GPU host has
     config = make_config("tiny", ["train.envs=200"])
     assert estimate("dreamerv2", config)[0].key == "train.envs"
@@ -134,3 +137,38 @@ def test_collects_hint_names_its_own_options(tmp_path):
                      "--out", str(out), "--resume")  # fmt: skip
     line = one_line(code, text, "other settings", f"pass --force to start {out} and its agent over")
     assert "--logdir" not in line and not out.exists()
+
+
+@pytest.mark.parametrize("algo", ["dreamerv2-finetune", "dreamerv2-finetune-ewc"])
+def test_a_fine_tuned_dreamerv2_without_a_source_is_refused_in_one_line(tmp_path, toy_dataset, algo):
+    logdir = tmp_path / "run"
+    code, out = cli("train", "--algo", algo, "--target", TARGET, "--dataset", str(toy_dataset), "--logdir",
+                    str(logdir), "--preset", "tiny", "--device", "cpu")  # fmt: skip
+    one_line(code, out, f"{algo} needs an online source domain", "--source toy_reach")
+    assert not logdir.exists()
+
+
+@pytest.mark.parametrize(
+    ("algo", "override", "needles"),
+    [
+        ("lompo", "lompo.horizon=0", ("lompo.horizon=0", ">= 1")),
+        ("lompo", "lompo.tau=0", ("lompo.tau=0.0", "in (0, 1]")),
+        ("lompo", "lompo.discount=1.5", ("lompo.discount=1.5", "in (0, 1]")),
+        ("lompo", "lompo.weight=-1", ("lompo.weight=-1.0", ">= 0")),
+        ("lompo", "lompo.ensemble=1", ("lompo.ensemble=1", ">= 2")),
+        ("lompo", "lompo.batch_size=many", ("lompo.batch_size", "a whole number")),
+        ("lompo", "lompo.model_updates=40", ("lompo.model_updates=40 leaves none of the run's 40 updates",)),
+        ("lompo", "train.seq_len=1", ("train.seq_len must be at least 2",)),
+        ("dreamerv2-finetune-ewc", "ewc.weight=-0.5", ("ewc.weight=-0.5", ">= 0")),
+        ("dreamerv2-finetune-ewc", "ewc.fisher_batches=0", ("ewc.fisher_batches=0", ">= 1")),
+        ("dreamerv2-finetune-ewc", "ewc.lambda=1", ("unknown config key 'ewc.lambda'",)),
+    ],
+)
+def test_bad_lompo_and_ewc_values_are_refused_before_the_run_folder_exists(tmp_path, toy_dataset, algo, override,
+                                                                           needles):  # fmt: skip
+    logdir = tmp_path / "run"
+    code, out = cli("train", "--algo", algo, "--source", "toy_reach", "--target", TARGET, "--dataset",
+                    str(toy_dataset), "--logdir", str(logdir), "--preset", "tiny", "--device", "cpu", "--set",
+                    override)  # fmt: skip
+    one_line(code, out, *needles)
+    assert not logdir.exists()

@@ -44,6 +44,8 @@ def one_line(code: int, output: str, *needles: str) -> str:
         ("dreamerv2-finetune", "dreamerv2-penalty"),
         ("dreamerv2", "dreamerv2-finetune"),
         ("dreamerv2-finetune", "dreamerv2"),
+        ("lompo", "dreamerv2-penalty"),
+        ("dreamerv2-finetune-ewc", "dreamerv2-finetune"),
     ],
 )
 def test_eval_refuses_a_checkpoint_of_another_algorithm(tmp_path, toy_dataset, make_run, folder_algo, checkpoint_algo):
@@ -156,7 +158,7 @@ def test_eval_of_a_file_outside_a_run_folder_names_the_file(tmp_path, toy_datase
     one_line(code, out, f"{toy_dataset} is not inside a run folder")
 
 
-@pytest.mark.parametrize("algo", ["dreamerv2-penalty", "dreamerv2-finetune"])
+@pytest.mark.parametrize("algo", ["dreamerv2-penalty", "dreamerv2-finetune", "lompo", "dreamerv2-finetune-ewc"])
 def test_viz_predictions_looks_inside_the_model_based_variants(tmp_path, toy_dataset, make_run, algo):
     run = make_run(tmp_path / "run", algo, toy_dataset)
     out = tmp_path / "p.png"

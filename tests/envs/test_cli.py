@@ -31,8 +31,9 @@ def test_tasks_lists_every_task_and_pair() -> None:
         assert any(line.split() == [source, "->", target] for line in lines)
     need = next(line for line in lines if "need --source" in line)
     alone = next(line for line in lines if "target dataset alone" in line)
-    assert need.split(": ")[1].split(", ") == ["coworld", "dreamerv2-finetune"]
-    assert set(alone.split(": ")[1].split(", ")) == {"dreamerv2", "curl", "curl-cql", "drq-bc", "dreamerv2-penalty"}
+    assert need.split(": ")[1].split(", ") == ["coworld", "dreamerv2-finetune", "dreamerv2-finetune-ewc"]
+    alone_algos = {"dreamerv2", "curl", "curl-cql", "drq-bc", "dreamerv2-penalty", "lompo"}
+    assert set(alone.split(": ")[1].split(", ")) == alone_algos
 
 
 def test_render_writes_the_frames_of_an_episode(tmp_path: Path) -> None:

@@ -279,3 +279,27 @@ def test_coworld_diagnostics_summarise_each_term_from_the_logs(tmp_path):
     out = CliRunner().invoke(main, ["report", str(tmp_path)])
     assert out.exit_code == 0, out.output
     assert "## CoWorld's terms" in (tmp_path / "report.md").read_text()
+
+
+def test_lompo_and_the_ewc_fine_tuned_runs_get_their_own_columns_and_curves(tmp_path: Path) -> None:
+    records = [
+        {"step": 0, "unit": "update", "ewc/fisher_world_model": 3.0},
+        {"step": 20, "unit": "update", "eval/return": 14.0, "eval/value_estimate": 1.0},
+        {"step": 40, "unit": "update", "eval/return": 21.0, "eval/value_estimate": 1.0},
+    ]
+    run = make_run(tmp_path, "ewc", algo="dreamerv2-finetune-ewc", source="toy_reach", target="toy_reach_shifted",
+                   seed=0, returns=[21.0], records=records)  # fmt: skip
+    assert load_result(run).pair == "toy_reach->toy_reach_shifted"
+    assert learning_curve(run, "dreamerv2-finetune-ewc") == [(20, 14.0), (40, 21.0)]
+    make_run(tmp_path, "lompo", algo="lompo", target="toy_reach_shifted", seed=0, returns=[7.0])
+    make_run(tmp_path, "ft", algo="dreamerv2-finetune", source="toy_reach", target="toy_reach_shifted", seed=0,
+             returns=[18.0])  # fmt: skip
+    make_run(tmp_path, "pen", algo="dreamerv2-penalty", target="toy_reach_shifted", seed=0, returns=[9.0])
+    table = results_table(load_results(tmp_path)).splitlines()
+    header = table[0]
+    order = ["dreamerv2-penalty", "lompo", "dreamerv2-finetune ", "dreamerv2-finetune-ewc"]
+    assert [header.index(name) for name in order] == sorted(header.index(name) for name in order)  # ALGO_ORDER
+    cells = [cell.strip() for cell in table[2].split("|")[1:-1]]
+    names = [cell.strip() for cell in header.split("|")[1:-1]]
+    assert cells[names.index("lompo")] == "7.0 ± 0.0"
+    assert cells[names.index("dreamerv2-finetune-ewc")] == "**21.0 ± 0.0**"  # the best of the row

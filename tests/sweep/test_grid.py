@@ -34,7 +34,7 @@ def test_table1_is_the_papers_five_dmc_pairs():
         ("cheetah_run", "cheetah_nopaw"),
     )
     assert spec.preset == "paper" and spec.data.quality == "medium-replay" and spec.eval_episodes == 10
-    assert len(spec.runs()) == 5 * 7 * 3  # every algorithm, DrQ+BC and the two DreamerV2 variants included
+    assert len(spec.runs()) == 5 * 9 * 3  # every algorithm: DrQ+BC, LOMPO and the three DreamerV2 variants included
 
 
 def test_table2_is_the_papers_five_metaworld_pairs():
@@ -58,7 +58,7 @@ def test_toy_table_has_every_algorithm_three_seeds_and_a_random_target_dataset()
     spec = named_table("toy").check()
     assert spec.pairs == TOY and spec.preset == "tiny"
     runs = spec.runs()
-    for algo in ("coworld", "dreamerv2", "curl", "curl-cql"):
+    for algo in ("coworld", "dreamerv2", "curl", "curl-cql", "lompo", "dreamerv2-finetune-ewc"):
         assert sorted(r.seed for r in runs if r.algo == algo) == [0, 1, 2]
     assert spec.data.policy == "random" and spec.data.episodes is not None
 
@@ -73,6 +73,7 @@ def test_toy_cpu_table_uses_the_cpu_preset_and_a_dreamerv2_medium_replay_target(
     # Every override names a real config key with a value in range on the cpu preset.
     config = make_config("cpu", list(spec.overrides))
     assert config.curl.updates == 3000 and config.curl.hidden == 64 and config.penalty.ensemble == 3
+    assert config.lompo.model_updates == 1000 < config.coworld.iterations * config.coworld.target_updates
     # The model-free baselines take the toy table's networks and batch, not the cpu preset's (the paper's).
     tiny = make_config("tiny")
     assert config.curl.batch_size == tiny.curl.batch_size < make_config("cpu").curl.batch_size
@@ -121,7 +122,7 @@ def test_ablation_switches_each_term_off_in_turn():
     # on a table: the table's grid with the variants added, only CoWorld runs multiplied
     toy = build_spec(table="toy", ablation=True)
     assert toy.pairs == TOY and toy.variants == ABLATION
-    assert len(toy.runs()) == 3 * (7 + 3)
+    assert len(toy.runs()) == 3 * (9 + 3)
 
 
 def test_algorithms_with_a_source_keep_it_and_the_others_share_the_target():
@@ -313,15 +314,16 @@ def test_the_later_papers_dmc_tables_are_its_six_pairs_on_two_dataset_qualities(
     from coworld.report import paper
 
     for name, quality, columns in (
-        ("dmc-mr", "medium-replay", ["dreamerv2-penalty", "drq-bc", "curl", "dreamerv2-finetune", "coworld"]),
-        ("dmc-me", "medium-expert", ["dreamerv2-penalty", "drq-bc", "dreamerv2-finetune", "coworld"]),
+        ("dmc-mr", "medium-replay", ["dreamerv2-penalty", "drq-bc", "curl", "lompo", "dreamerv2-finetune", "coworld"]),
+        ("dmc-me", "medium-expert", ["dreamerv2-penalty", "drq-bc", "lompo", "dreamerv2-finetune", "coworld"]),
     ):
         spec = named_table(name).check()
         assert spec.pairs == paper.TABLES[name].pairs
         assert [target for _, target in spec.pairs] == [
             "walker_downhill", "walker_uphill", "walker_nofoot", "cheetah_downhill", "cheetah_uphill", "cheetah_nopaw"
         ]  # fmt: skip
-        assert list(spec.algos) == [*columns, "dreamerv2"]  # the paper's columns we have, and offline DreamerV2
+        # the paper's columns we have, then offline DreamerV2 and the EWC fine-tuning
+        assert list(spec.algos) == [*columns, "dreamerv2", "dreamerv2-finetune-ewc"]
         assert (spec.seeds, spec.eval_episodes, spec.preset) == ((0, 1, 2), 10, "paper")
         assert (spec.data.policy, spec.data.quality) == ("dreamerv2", quality)
         cw = make_config(spec.preset, list(spec.overrides)).coworld

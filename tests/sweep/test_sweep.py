@@ -190,3 +190,29 @@ def test_dry_run_lists_the_work_and_writes_nothing(tmp_path):
     assert not root.exists()
     out = CliRunner().invoke(main, ["sweep", "--table", "toy", "--dir", str(root), "--gpus-per-run", "0.5"])
     assert out.exit_code == 2 and "--gpus-per-run is a Ray resource request" in out.output and not root.exists()
+
+
+@pytest.mark.slow
+def test_lompo_and_the_ewc_fine_tuned_dreamerv2_run_in_a_sweep_and_get_report_rows(tmp_path):
+    from click.testing import CliRunner
+
+    from coworld.cli import main
+
+    grid_file = tmp_path / "grid.toml"
+    grid_file.write_text(
+        GRID.format(algos=json.dumps(["lompo", "dreamerv2-finetune-ewc"]), seeds=1).replace(
+            '"curl.updates=20"', '"lompo.model_updates=4", "ewc.fisher_batches=2", "curl.updates=20"'
+        )
+    )
+    root = tmp_path / "sweep"
+    done = subprocess.run(sweep_args(grid_file, root), capture_output=True, text=True, timeout=900)
+    assert done.returncode == 0, done.stdout + done.stderr
+    runs = sorted(p.name for p in (root / "runs").iterdir())
+    assert runs == ["dreamerv2-finetune-ewc-toy_reach-toy_reach_shifted-s0", "lompo-toy_reach_shifted-s0"]
+    assert all((root / "runs" / run / "eval.json").exists() for run in runs)
+    out = CliRunner().invoke(main, ["report", str(root)])
+    assert out.exit_code == 0, out.output
+    report = (root / "report.md").read_text()
+    assert "| pair | lompo | dreamerv2-finetune-ewc |" in report  # ALGO_ORDER: LOMPO before the fine-tuned ones
+    assert "| toy_reach → toy_reach_shifted | lompo |" in report  # its value-check row
+    assert "| toy_reach → toy_reach_shifted | dreamerv2-finetune-ewc |" in report

@@ -146,6 +146,8 @@ def test_sigterm_stops_the_sweep_and_its_child_with_exit_code_143(tmp_path, proc
     [
         (["--pairs", "toy_reach:toy_reach_shifted", "--preset", "tiny", "--set", "penalty.model_updates=40"],
          ["the dreamerv2-penalty runs", "penalty.model_updates=40 leaves none"]),
+        (["--pairs", "toy_reach:toy_reach_shifted", "--algos", "lompo", "--preset", "tiny", "--set",
+          "lompo.model_updates=40"], ["the lompo runs", "lompo.model_updates=40 leaves none"]),
         (["--table", "toy-cpu", "--set", "penalty.model_updates=100000"], ["penalty.model_updates=100000"]),
         (["--table", "toy-cpu", "--set", "penalty.model_updates=100000", "--dry-run"], ["penalty.model_updates"]),
         (["--pairs", "toy_reach:toy_reach_shifted", "--preset", "tiny", "--set", "penalty.ensemble=1000000000"],
