@@ -148,11 +148,12 @@ _METAWORLD_REFERENCE = {
 
 # Toy returns: 200 episodes, seeds 0-199, the env's own seeded action sampler (tests/envs/test_toy.py).
 _TOY = [
-    # name, modification, reference_return (scripted expert), random_return
-    ("toy_reach", "", 46.5, 9.6),
-    ("toy_reach_shifted", "other colours; constant drift towards -x", 45.6, 2.3),
-    ("toy_reach_centre", "goal at the centre", 48.5, 20.3),
-    ("toy_reach_centre_shifted", "goal at the centre; other colours; constant drift towards -x", 48.4, 18.3),
+    # name, modification, reference_return (scripted expert), random_return, action size
+    ("toy_reach", "", 46.5, 9.6, 2),
+    ("toy_reach_shifted", "other colours; constant drift towards -x", 45.6, 2.3, 2),
+    ("toy_reach_centre", "goal at the centre", 48.5, 20.3, 2),
+    ("toy_reach_centre_shifted", "goal at the centre; other colours; constant drift towards -x", 48.4, 18.3, 2),
+    ("toy_reach_shifted_act3", "as toy_reach_shifted; a 3rd action component, ignored (for tests)", 45.6, 2.2, 3),
 ]
 
 
@@ -177,10 +178,12 @@ def _build_tasks() -> dict[str, TaskSpec]:
         reference, source = _metaworld_reference(name)
         base = f"Meta-World {mw_name}"
         tasks.append(TaskSpec(name, "metaworld", 4, 500, 1, "", base, reference, random_return, source))
-    for name, modification, reference_return, random_return in _TOY:
+    for name, modification, reference_return, random_return, action_size in _TOY:
         base = "NumPy dot-to-goal reaching"
         source = "scripted expert policy, mean of 200 episodes"
-        tasks.append(TaskSpec(name, "toy", 2, 50, 1, modification, base, reference_return, random_return, source))
+        tasks.append(
+            TaskSpec(name, "toy", action_size, 50, 1, modification, base, reference_return, random_return, source)
+        )
     return {task.name: task for task in tasks}
 
 
