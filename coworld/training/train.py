@@ -48,12 +48,12 @@ def parse_sources(text: str) -> tuple[str, ...]:
     and run folder names write them); each a known task, none twice. One CoworldError line otherwise."""
     names = [part.strip() for part in text.replace("+", ",").split(",")]
     if not all(names):
-        raise CoworldError(f"--source {text!r} has an empty name; write TASK or TASK,TASK,... (see `coworld tasks`)")
+        raise CoworldError(f"source list {text!r} has an empty name; write TASK or TASK,TASK,... (see `coworld tasks`)")
     for name in names:
         envs.task_spec(name)
     repeated = next((name for i, name in enumerate(names) if name in names[:i]), None)
     if repeated is not None:
-        raise CoworldError(f"--source names {repeated} twice; give each candidate source once")
+        raise CoworldError(f"source list {text!r} names {repeated} twice; give each candidate source once")
     return tuple(names)
 
 
