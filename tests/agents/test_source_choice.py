@@ -5,6 +5,11 @@ from __future__ import annotations
 
 import json
 import math
+import os
+import signal
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -183,3 +188,60 @@ def test_a_list_of_sources_for_an_algorithm_without_a_source_is_one_note(tmp_pat
     assert out.exit_code == 0, out.output
     notes = [line for line in out.output.splitlines() if "--source" in line]
     assert notes == ["note: --source is not used by drq-bc: it learns from the target dataset alone"]
+
+
+CLI = [sys.executable, "-c", "from coworld.cli import run; run()"]
+
+
+def test_the_command_killed_inside_the_second_candidate_resumes_and_keeps_the_first_ones_distance(
+    tmp_path: Path, toy_dataset_writer
+) -> None:
+    dataset = toy_dataset_writer(tmp_path / "target.h5", "toy_reach_shifted", episodes=3)
+    run = tmp_path / "run"
+    args = [*CLI, "train", "--source", CANDIDATES, "--target", "toy_reach_shifted", "--dataset", str(dataset)]
+    args += ["--preset", "tiny", "--logdir", str(run), "--seed", "0", "--no-progress", "--threads", "1"]
+    args += [arg for item in SCHEDULE for arg in ("--set", item)]
+    second = candidate_dir(run, "toy_reach_shifted_act3") / "source_replay.h5"
+    proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    try:
+        deadline = time.time() + 300
+        while not second.exists():
+            assert proc.poll() is None and time.time() < deadline
+            time.sleep(0.02)
+        time.sleep(1.0)  # inside the second candidate's pretraining
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+    first = json.loads((run / "selection" / "distances.json").read_text())
+    assert list(first) == ["toy_reach"] and not (run / CHOICE_FILE).exists()
+    out = subprocess.run(args, capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0, out.stderr[-3000:]
+    choice = read_choice(run, CANDIDATES.split(","))
+    assert choice is not None and choice.distances["toy_reach"] == first["toy_reach"]
+    assert f"done: {run}" in out.stdout
+
+
+@pytest.mark.slow
+def test_the_dmc_command_records_its_choice_and_the_distances(tmp_path: Path) -> None:
+    """The issue's command: walker_walk or cheetah_run for walker_uphill, tiny preset, a 2-episode random dataset
+    (3 min 33 s on the shared 2-core machine)."""
+    dataset = tmp_path / "walker_uphill.h5"
+    collect = [*CLI, "collect", "--task", "walker_uphill", "--policy", "random", "--episodes", "2"]
+    assert subprocess.run([*collect, "--out", str(dataset)], capture_output=True, timeout=600).returncode == 0
+    run = tmp_path / "run"
+    args = [*CLI, "train", "--source", "walker_walk,cheetah_run", "--target", "walker_uphill", "--preset", "tiny"]
+    args += ["--dataset", str(dataset), "--logdir", str(run), "--device", "cpu", "--no-progress"]
+    out = subprocess.run(args, capture_output=True, text=True, timeout=1800)
+    assert out.returncode == 0, out.stderr[-3000:]
+    choice = json.loads((run / CHOICE_FILE).read_text())
+    assert choice["candidates"] == ["walker_walk", "cheetah_run"]
+    assert set(choice["distances"]) == {"walker_walk", "cheetah_run"}
+    assert choice["chosen"] == min(choice["distances"], key=choice["distances"].get)
+    assert torch.load(run / "checkpoint.pt", weights_only=True)["source_task"] == choice["chosen"]
+    evaluated = subprocess.run([*CLI, "eval", "--ckpt", str(run), "--episodes", "1"], capture_output=True, text=True)
+    assert evaluated.returncode == 0 and "walker_uphill: return" in evaluated.stdout
+    assert subprocess.run([*CLI, "report", str(run)], capture_output=True, timeout=600).returncode == 0
+    assert f"**{choice['chosen']}**" in (run / "report.md").read_text()
