@@ -4,7 +4,7 @@
 from __future__ import annotations
 
 import json
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -65,3 +65,15 @@ def read_choice(run_dir: str | Path, candidates: Sequence[str] | None = None) ->
             " it was copied from another run: pass another --logdir, or --force to start over"
         )
     return choice
+
+
+def trained_source(run_dir: str | Path, info: Mapping[str, Any]) -> str | None:
+    """The source task a run's source agent learned in: the one chosen where it chose among several (None before
+    the choice), else the one it names."""
+    source = info.get("source")
+    if not isinstance(source, str):
+        return None
+    if "," not in source:
+        return source
+    choice = read_choice(run_dir)
+    return choice.chosen if choice is not None else None

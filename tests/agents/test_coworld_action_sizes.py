@@ -19,6 +19,7 @@ from coworld.config import make_config
 from coworld.errors import CoworldError
 from coworld.models.rssm import pad_action
 from coworld.training.train import check_job, run_job
+from coworld.viz.runs import load_run_models
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -124,6 +125,9 @@ def test_a_run_across_action_sizes_trains_resumes_and_evaluates(
     out = CliRunner().invoke(main, ["eval", "--ckpt", str(tmp_path / "run"), "--episodes", "1", "--device", "cpu"])
     assert out.exit_code == 0, out.output
     assert "toy_reach_shifted_act3" in out.output and "return" in out.output
+    models = load_run_models(tmp_path / "run", device="cpu")  # what `coworld viz` looks inside
+    assert models.agents["source"].action_size == 2 and models.agents["source"].world_model.action_size == 3
+    assert models.agents["target"].action_size == 3
 
 
 def test_fine_tuning_still_refuses_a_source_of_another_action_size(tmp_path: Path, toy_dataset_writer) -> None:
