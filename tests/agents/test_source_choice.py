@@ -24,6 +24,7 @@ from coworld.cli import main
 from coworld.config import make_config
 from coworld.data import open_dataset
 from coworld.losses.coworld import closest_source, domain_distance
+from coworld.training.run import clear_run_dir
 from coworld.training.source_choice import CHOICE_FILE, candidate_dir, read_choice
 from coworld.training.train import check_job, run_job
 
@@ -155,6 +156,9 @@ def test_a_run_chooses_the_closest_candidate_records_it_and_trains_with_it(
     assert "## Source choice" in report
     for name, value in choice.distances.items():
         assert (f"**{name}** {value:.4g}" if name == choice.chosen else f"{name} {value:.4g}") in report
+
+    clear_run_dir(run)  # --force: the choice and what led to it go with the rest
+    assert not [p.name for p in run.iterdir() if p.name in ("sources", "selection", CHOICE_FILE, "source")]
 
 
 @pytest.mark.parametrize(
