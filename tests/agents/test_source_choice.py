@@ -230,8 +230,7 @@ def test_the_command_killed_inside_the_second_candidate_resumes_and_keeps_the_fi
 
 @pytest.mark.slow
 def test_the_dmc_command_records_its_choice_and_the_distances(tmp_path: Path) -> None:
-    """The issue's command: walker_walk or cheetah_run for walker_uphill, tiny preset, a 2-episode random dataset
-    (3 min 33 s on the shared 2-core machine)."""
+    """The issue's command: walker_walk or cheetah_run for walker_uphill, tiny preset, a 2-episode random dataset."""
     dataset = tmp_path / "walker_uphill.h5"
     collect = [*CLI, "collect", "--task", "walker_uphill", "--policy", "random", "--episodes", "2"]
     assert subprocess.run([*collect, "--out", str(dataset)], capture_output=True, timeout=600).returncode == 0
