@@ -50,6 +50,7 @@ from coworld.storage import write_text_atomically
 from coworld.training.checkpoint import load_checkpoint, rng_state, save_checkpoint, set_rng_state
 from coworld.training.logger import Logger
 from coworld.training.online import make_source_trainer, source_replay_writer
+from coworld.training.run import seed_everything
 from coworld.training.source_choice import CHOICE_FILE, SourceChoice, candidate_dir, read_choice
 
 WARMUP_KIND = "coworld-warmup"
@@ -57,6 +58,8 @@ SELECT_SEED = 7_000
 """Offset of the seed of the batches every candidate's distance is measured on (and of their latent noise)."""
 WARMUP_SEED = 8_000
 """Offset of the seed of the target warm-up's batches."""
+CANDIDATE_SEED = 9_000
+"""Offset of the seed each candidate's networks start from (plus its place in the list)."""
 
 
 def measure_distance(
@@ -112,9 +115,11 @@ def choose_source(
         measured_path = selection / "distances.json"
         distances: dict[str, float] = json.loads(measured_path.read_text()) if measured_path.exists() else {}
         batches = _batches(dataset, config, config.seed + SELECT_SEED, cfg.select_batches)
-        for name in candidates:
+        for index, name in enumerate(candidates):
             if name in distances:
                 continue
+            # each candidate starts from a seed of its own, so one rerun after a kill starts it as it first started
+            seed_everything(config.seed + CANDIDATE_SEED + index)
             candidate = _pretrain(job, name, device, progress)
             distances[name] = measure_distance(
                 candidate.source, target, batches, align_on=cfg.align_on, seed=config.seed + SELECT_SEED
