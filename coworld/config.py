@@ -321,6 +321,10 @@ class CoWorldConfig:
     """Rescales target values against source values in Eq. 6."""
     eval_every: Annotated[int, AT_LEAST_1] = 1
     """Iterations between evaluations of the target agent in the target environment."""
+    select_batches: Annotated[int, Range(1, 10_000)] = 8
+    """Several sources (``--source A,B``): target-dataset batches (``train.batch_size`` x ``train.seq_len``) on
+    which each candidate's distance to the target is measured (:mod:`coworld.agents.choice`; the later paper gives
+    no number)."""
 
 
 @dataclass(frozen=True)

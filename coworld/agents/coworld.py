@@ -65,21 +65,48 @@ ALIGN_SOURCE = "align_source"
 """The key of a target batch's :meth:`CoWorld.source_alignment`, where :class:`TargetBatches` made it."""
 
 
+def source_model_action_size(source: int, target: int) -> int:
+    """The width of the source world model's action input: the wider of the two action spaces.
+
+    Only the source world model reads the other domain's actions (its posterior over target sequences, for Eq. 3's
+    source side and Eqs. 4-5's relabelled reward); the target agent never reads source actions, and the critics
+    read features, whose size does not depend on the action space. Each action is zero-padded at the end to this
+    width (:func:`coworld.models.rssm.pad_action`), so nothing of either space is dropped.
+    """
+    return max(source, target)
+
+
 class CoWorld:
     """The two agents and CoWorld's update steps.
 
     Args:
         config: resolved config; ``config.coworld`` holds the CoWorld terms and their switches.
-        action_size: shared by source and target (checked by the caller).
+        action_size: the target task's action size (the target agent's actor and world model).
+        source_action_size: the source task's (the source actor's); None: the target's. Where the two differ, the
+            source world model's action input is the wider of them (:func:`source_model_action_size`), so it reads
+            its own sequences and the target's, each zero-padded to that width.
     """
 
-    def __init__(self, *, config: Config, action_size: int, device: torch.device | str) -> None:
+    def __init__(
+        self,
+        *,
+        config: Config,
+        action_size: int,
+        device: torch.device | str,
+        source_action_size: int | None = None,
+    ) -> None:
         if config.coworld.align_on not in ALIGN_ON:
             from coworld.errors import ConfigError
 
             raise ConfigError(f"coworld.align_on must be one of {', '.join(ALIGN_ON)}, not {config.coworld.align_on!r}")
         self.config = config
-        self.source = DreamerV2(config=config, action_size=action_size, device=device)
+        source_action_size = action_size if source_action_size is None else source_action_size
+        self.source = DreamerV2(
+            config=config,
+            action_size=source_action_size,
+            device=device,
+            model_action_size=source_model_action_size(source_action_size, action_size),
+        )
         self.target = DreamerV2(config=config, action_size=action_size, device=device)
         self.device = self.target.device
         self.target_batches: Iterator[dict[str, np.ndarray]] | None = None
@@ -250,8 +277,26 @@ def train_coworld(job: Any, *, device: torch.device, resumed: bool, progress: bo
     cfg = config.coworld
     logdir = Path(job.logdir)
     spec = task_spec(job.target)
-    agent = CoWorld(config=config, action_size=spec.action_size, device=device)
     dataset = open_dataset(job.dataset)
+    warm_target = None
+    candidates = tuple(str(job.source).split(","))
+    if len(candidates) > 1:  # several sources: choose one first, then Algorithm 1 with it (coworld.agents.choice)
+        import dataclasses
+
+        from coworld.agents.choice import choose_source
+
+        try:
+            choice, warm_target = choose_source(job, candidates, dataset=dataset, device=device, progress=progress)
+        except BaseException:
+            dataset.close()
+            raise
+        job = dataclasses.replace(job, source=choice.chosen)
+    agent = CoWorld(
+        config=config,
+        action_size=spec.action_size,
+        source_action_size=task_spec(job.source).action_size,
+        device=device,
+    )
     ckpt_path = logdir / CHECKPOINT_NAME
     progress_state = {"iteration": 0, "phase": "pretrain", "last_eval": None}
 
@@ -275,6 +320,10 @@ def train_coworld(job: Any, *, device: torch.device, resumed: bool, progress: bo
                 source_trainer.act_rng.set_state(state["source_act_rng"])
             progress_state.update(state["progress"])
             set_rng_state(state["rng"])
+        elif warm_target is not None:  # the first checkpoint of a run that chose its source: the warmed-up target
+            from coworld.agents.choice import restore_warm_target
+
+            restore_warm_target(agent, warm_target, device)
 
         def save() -> None:
             save_checkpoint(

@@ -85,13 +85,20 @@ class DreamerV2:
         action_size: int,
         image_shape: tuple[int, int, int] = (64, 64, 3),
         device: torch.device | str | None = None,
+        model_action_size: int | None = None,
     ) -> None:
         self.config = config
         self.action_size = action_size
+        """The actor's actions (the agent's own task's action space)."""
+        model_action_size = action_size if model_action_size is None else model_action_size
+        if model_action_size < action_size:
+            raise ValueError(f"model_action_size {model_action_size} is below the actor's {action_size}")
         self.image_shape = tuple(image_shape)
         self.device = resolve_device(config.device if device is None else device)
         self.autocast_dtype = resolve_precision(config.precision, self.device)
-        self.world_model = WorldModel(config=config.world_model, action_size=action_size, image_shape=image_shape)
+        # the world model's action input: the actor's size, or wider for a CoWorld source model that also reads
+        # target sequences (narrower actions are zero-padded by the RSSM)
+        self.world_model = WorldModel(config=config.world_model, action_size=model_action_size, image_shape=image_shape)
         self.actor_critic = ActorCritic(
             config=config.actor_critic, feat_size=self.world_model.feat_size, action_size=action_size
         )
@@ -360,6 +367,7 @@ class PolicyCopy:
                 action_size=agent.action_size,
                 image_shape=agent.image_shape,
                 device=agent.device,
+                model_action_size=agent.world_model.action_size,
             )
         sources = (agent.world_model.encoder, agent.world_model.rssm, agent.actor_critic.actor)
         copies = (self.copy.world_model.encoder, self.copy.world_model.rssm, self.copy.actor_critic.actor)

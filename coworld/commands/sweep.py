@@ -23,7 +23,11 @@ from coworld.training.train import ALGOS
 @click.option(
     "--grid", "grid_file", type=input_path(dir_okay=False), help="A TOML grid file (see docs/reproducing.md)."
 )
-@click.option("--pairs", help="SOURCE:TARGET[,SOURCE:TARGET...], e.g. walker_walk:walker_uphill.")
+@click.option(
+    "--pairs",
+    help="SOURCE:TARGET[,SOURCE:TARGET...], e.g. walker_walk:walker_uphill; SOURCE+SOURCE:TARGET lets CoWorld choose"
+    " its source (e.g. walker_walk+cheetah_run:walker_uphill).",
+)
 @click.option("--algos", help=f"Comma-separated algorithms: {','.join(ALGOS)}.")
 @click.option("--seeds", type=count_type(1, MAX_SEEDS), help="Seeds 0..N-1 of every run.")
 @click.option("--preset", help="Config preset of every run: paper, cpu or tiny.")

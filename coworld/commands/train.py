@@ -20,7 +20,8 @@ RESUME = "rerun the same command to resume"
 @click.option(
     "--source",
     default=None,
-    help=f"Online source task ({', '.join(NEEDS_SOURCE)} only; the others ignore it), e.g. walker_walk.",
+    help=f"Online source task ({', '.join(NEEDS_SOURCE)} only; the others ignore it), e.g. walker_walk; for coworld"
+    " also several, A,B,...: it pretrains each and keeps the one whose latents lie closest to the target's.",
 )
 @click.option(
     "--dataset",
@@ -111,6 +112,8 @@ def _kept(logdir: Path) -> str:
     if not path.exists():
         if (logdir / "source" / "checkpoint.pt").exists():  # pretraining its source agent (CoWorld, fine-tuning)
             return f"{logdir} keeps the source agent's pretraining checkpoint and experience"
+        if (logdir / "sources").is_dir():  # CoWorld choosing among several sources
+            return f"{logdir} keeps the candidate sources' pretraining and the distances measured so far"
         return f"{logdir} holds no checkpoint yet"
     state = torch.load(path, map_location="cpu", weights_only=True, mmap=True)
     if "progress" in state:  # CoWorld

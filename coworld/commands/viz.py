@@ -17,6 +17,7 @@ from coworld.commands.options import (
     output_file,
     threads_option,
 )
+from coworld.training.source_choice import trained_source
 
 DEVICES = click.Choice(["auto", "cpu", "cuda"])
 MAX_SHOWN = 64
@@ -127,7 +128,7 @@ def latents(ckpt, out, frames, length, dataset, source_dataset, source, perplexi
         seed=seed,
         perplexity=perplexity,
     )
-    source_task = source or run.info.get("source")
+    source_task = source or trained_source(run.run_dir, run.info)
     title = f"{run.algo}: {source_task or 'source'} -> {run.info['target']} ({run.run_dir.name})"
     write_figure(out, latent_figure(report, title))
     click.echo(f"{run.run_dir} ({run.algo} run): {where}; {frames} frames each")

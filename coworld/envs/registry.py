@@ -182,11 +182,12 @@ _ROBODESK_REFERENCE: dict[str, tuple[float, str]] = {
 
 # Toy returns: 200 episodes, seeds 0-199, the env's own seeded action sampler (tests/envs/test_toy.py).
 _TOY = [
-    # name, modification, reference_return (scripted expert), random_return
-    ("toy_reach", "", 46.5, 9.6),
-    ("toy_reach_shifted", "other colours; constant drift towards -x", 45.6, 2.3),
-    ("toy_reach_centre", "goal at the centre", 48.5, 20.3),
-    ("toy_reach_centre_shifted", "goal at the centre; other colours; constant drift towards -x", 48.4, 18.3),
+    # name, modification, reference_return (scripted expert), random_return, action size
+    ("toy_reach", "", 46.5, 9.6, 2),
+    ("toy_reach_shifted", "other colours; constant drift towards -x", 45.6, 2.3, 2),
+    ("toy_reach_centre", "goal at the centre", 48.5, 20.3, 2),
+    ("toy_reach_centre_shifted", "goal at the centre; other colours; constant drift towards -x", 48.4, 18.3, 2),
+    ("toy_reach_shifted_act3", "as toy_reach_shifted; a 3rd action component, ignored (for tests)", 45.6, 2.2, 3),
 ]
 
 
@@ -215,10 +216,12 @@ def _build_tasks() -> dict[str, TaskSpec]:
         reference, source = _ROBODESK_REFERENCE[name]
         base = f"RoboDesk {robodesk_name} (dense reward)"
         tasks.append(TaskSpec(name, "robodesk", 5, 500, 1, "", base, reference, random_return, source))
-    for name, modification, reference_return, random_return in _TOY:
+    for name, modification, reference_return, random_return, action_size in _TOY:
         base = "NumPy dot-to-goal reaching"
         source = "scripted expert policy, mean of 200 episodes"
-        tasks.append(TaskSpec(name, "toy", 2, 50, 1, modification, base, reference_return, random_return, source))
+        tasks.append(
+            TaskSpec(name, "toy", action_size, 50, 1, modification, base, reference_return, random_return, source)
+        )
     return {task.name: task for task in tasks}
 
 
@@ -237,10 +240,15 @@ PAIRS: tuple[tuple[str, str], ...] = (
     ("mw_drawer_close", "mw_handle_press"),
     ("mw_drawer_close", "mw_button_press"),
     ("mw_stick_push", "mw_assembly"),
+    ("mw_button_press", "robodesk_push_button"),
+    ("mw_window_close", "robodesk_open_slide"),
+    ("mw_drawer_close", "robodesk_drawer_open"),
+    ("mw_handle_press", "robodesk_upright_block_off_table"),
     ("toy_reach", "toy_reach_shifted"),
     ("toy_reach_centre", "toy_reach_centre_shifted"),
 )
-"""(source, target) pairs: the paper's DMC and Meta-World transfer settings, and the two toy pairs."""
+"""(source, target) pairs: the paper's DMC and Meta-World transfer settings, the later paper's Meta-World -> RoboDesk
+pairs (another robot with another action size), and the two toy pairs."""
 
 
 def paired_source(target: str) -> str | None:

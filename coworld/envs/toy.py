@@ -14,6 +14,9 @@ thirds of the expert's return; with it at the centre every constant direction dr
 best of 16 scores 10.6 / 10.4, below the random policy, so any return above random needs the dot's position read
 from the frame (20 episodes each: ``benchmarks/toy_baselines.py`` and ``--pair centre``).
 
+``toy_reach_shifted_act3``: ``toy_reach_shifted`` with a 3-d action whose third component the dot ignores: a target
+of another action size than ``toy_reach`` (2), for fast tests of CoWorld across action sizes.
+
 All: 50 steps per episode, action repeat 1, never terminate. Returns (mean over 200 episodes, seeds 0-199,
 re-measured by ``tests/envs/test_toy.py``): uniform random actions 9.6 on toy_reach and 2.3 on toy_reach_shifted
 (the drift carries an aimless dot away from the goal); :meth:`ToyReachEnv.expert_action` (full speed at the goal)
@@ -59,6 +62,8 @@ class ToyVariant:
     dot_colour: tuple[int, int, int]
     drift: tuple[float, float] = (0.0, 0.0)
     goal: tuple[float, float] = GOAL
+    action_size: int = 2
+    """Action components; the first two are the dot's velocity, any further ones are taken and ignored."""
 
 
 _PLAIN = ToyVariant(background=(30, 30, 40), goal_colour=(40, 160, 70), dot_colour=(230, 60, 50))
@@ -70,6 +75,7 @@ VARIANTS: dict[str, ToyVariant] = {
     "toy_reach_shifted": _SHIFTED,
     "toy_reach_centre": replace(_PLAIN, goal=CENTRE_GOAL),
     "toy_reach_centre_shifted": replace(_SHIFTED, goal=CENTRE_GOAL),
+    "toy_reach_shifted_act3": replace(_SHIFTED, action_size=3),
 }
 """Each toy task's look and dynamics; the centre pair differs from the corner pair by its goal only."""
 
@@ -78,7 +84,8 @@ class ToyReachEnv(gym.Env[np.ndarray, np.ndarray]):
     """Move a dot to a fixed goal, from pixels.
 
     Observation: ``(S, S, 3)`` uint8 RGB frame (dot drawn with anti-aliased edges, so sub-pixel motion shows).
-    Action: ``(2,)`` float32 velocity in [-1, 1]. Reward in [0, 1] per step (summed over ``action_repeat``).
+    Action: ``(A,)`` float32 in [-1, 1], ``A`` the variant's ``action_size``; the first two are the velocity.
+    Reward in [0, 1] per step (summed over ``action_repeat``).
 
     Attributes:
         position: the dot's centre, ``(2,)`` float64 in [-LIMIT, LIMIT]; ``goal``: the goal's centre, ``(2,)``.
@@ -94,7 +101,7 @@ class ToyReachEnv(gym.Env[np.ndarray, np.ndarray]):
         self._variant = variant
         size = settings.image_size
         self.observation_space = gym.spaces.Box(0, 255, (size, size, 3), np.uint8)
-        self.action_space = gym.spaces.Box(-1.0, 1.0, (2,), np.float32)
+        self.action_space = gym.spaces.Box(-1.0, 1.0, (variant.action_size,), np.float32)
         self._start_rng = np.random.default_rng(seed)
         self._drift = np.array(variant.drift)
         self.goal = np.array(variant.goal)
@@ -129,9 +136,9 @@ class ToyReachEnv(gym.Env[np.ndarray, np.ndarray]):
         if self._needs_reset:
             raise RuntimeError("call reset() before step() (at the start and after each truncated episode)")
         action = np.asarray(action, np.float64)
-        if action.shape != (2,):
-            raise ValueError(f"{self.task.name} takes actions of shape (2,), got {action.shape}")
-        velocity = np.clip(action, -1.0, 1.0) * SPEED + self._drift
+        if action.shape != self.action_space.shape:
+            raise ValueError(f"{self.task.name} takes actions of shape {self.action_space.shape}, got {action.shape}")
+        velocity = np.clip(action[:2], -1.0, 1.0) * SPEED + self._drift
         reward = 0.0
         for _ in range(self.settings.action_repeat):
             self.position = np.clip(self.position + velocity, -LIMIT, LIMIT)
@@ -149,13 +156,16 @@ class ToyReachEnv(gym.Env[np.ndarray, np.ndarray]):
     def expert_action(self) -> np.ndarray:
         """A scripted near-optimal action from the true state: full speed at the goal, cancelling the drift.
 
-        Returns ``(2,)`` float32 in [-1, 1]; used to measure the reference return and to script good data.
+        Returns ``(A,)`` float32 in [-1, 1] (components past the second 0); used to measure the reference return
+        and to script good data.
         """
         wanted = (self.goal - self.position - self._drift) / SPEED
         largest = np.abs(wanted).max()
         if largest > 1.0:
             wanted = wanted / largest
-        return wanted.astype(np.float32)
+        action = np.zeros(self.action_space.shape, np.float32)
+        action[:2] = wanted
+        return action
 
     def render(self) -> np.ndarray:
         """The latest observation (``rgb_array``)."""

@@ -10,12 +10,17 @@ per-element arithmetic here can be held side by side with the paper:
 * Eqs. 4-5, target-modulated source reward: :func:`relabel_reward` and :func:`source_reward_loss_on_target`.
 * Eq. 6, max-min value regularisation: :func:`value_regulariser`, :func:`max_min_active` and the full critic
   objective :func:`regularised_critic_loss`.
+* Several candidate sources (the later paper's multi-source CoWorld): :func:`domain_distance` (Eq. 3's KL as a
+  distance) and :func:`closest_source` (the choice).
 
 "The release" below means the authors' public code (qiwang067/CoWorld, a fork of jsikyoon/dreamer-torch);
 every place it differs from the paper text is stated next to the option that reproduces it.
 """
 
 from __future__ import annotations
+
+import math
+from collections.abc import Mapping
 
 import torch
 import torch.nn.functional as F
@@ -26,6 +31,8 @@ from coworld.models.distributions import TwoHotSymlog, UnitGaussian
 
 __all__ = [
     "alignment_loss",
+    "closest_source",
+    "domain_distance",
     "embedding_alignment_loss",
     "max_min_active",
     "regularised_critic_loss",
@@ -116,6 +123,41 @@ def embedding_alignment_loss(source_embed: Tensor, target_embed: Tensor) -> Tens
     log_p = F.log_softmax(source_embed.detach(), dim=-1)
     log_q = F.log_softmax(target_embed, dim=-1)
     return (log_p.exp() * (log_p - log_q)).sum(dim=-1)
+
+
+def domain_distance(source: Tensor, target: Tensor, align_on: str = "latent") -> Tensor:
+    """How far a source world model's latents on target frames lie from the target model's: Eq. 3's KL, reduced as
+    the alignment term reduces it, without ``beta2`` and without gradient.
+
+    The later paper's multi-source CoWorld picks the source whose latents on the target data lie closest to the
+    target's, by a KL between the world models' latents; the authors' release computes it as its Eq. 3 term
+    (``_latent_distance``: ``KLDivLoss(batchmean)(log_softmax(e_T), softmax(e_S))``, i.e. ``KL[e_S || e_T]``,
+    source first as in Eq. 3). Here it follows ``coworld.align_on``:
+
+    * ``'latent'``: ``source``/``target`` are posterior logits ``(B, T, S, K)``; the distance is
+      :func:`alignment_loss` averaged over ``B`` and ``T``;
+    * ``'embedding'``: ``(B, T, E)`` encoder embeddings; :func:`embedding_alignment_loss` summed over ``T`` and
+      averaged over ``B`` (the release's ``batchmean``).
+
+    Returns:
+        a 0-d tensor, ``>= 0``; 0 where the two models put the frames at the same latent distribution.
+    """
+    with torch.no_grad():
+        if align_on == "latent":
+            return alignment_loss(source, target).mean()
+        if align_on == "embedding":
+            return embedding_alignment_loss(source, target).sum(dim=1).mean()
+    raise ValueError(f"align_on must be 'latent' or 'embedding', got {align_on!r}")
+
+
+def closest_source(distances: Mapping[str, float]) -> str:
+    """The candidate source with the smallest :func:`domain_distance` to the target; a tie goes to the candidate
+    listed first (``distances`` keeps the order the sources were given in). A distance that is not a number (a
+    diverged model) counts as infinitely far; raises ``ValueError`` when no candidate has a finite one."""
+    finite = {name: d for name, d in distances.items() if math.isfinite(d)}
+    if not finite:
+        raise ValueError(f"no candidate source has a finite distance to the target: {dict(distances)}")
+    return min(finite, key=lambda name: finite[name])  # min keeps the first of equal values
 
 
 # --------------------------------------------------------------------------------------------------------------

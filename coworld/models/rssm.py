@@ -52,6 +52,8 @@ class RSSM(nn.Module):
     ) -> None:
         super().__init__()
         self.deter_size = deter
+        self.action_size = action_size
+        """Width of the action input; narrower actions are zero-padded to it (:meth:`img_step`)."""
         self.stoch = stoch
         self.classes = classes
         self.unimix = unimix
@@ -89,8 +91,11 @@ class RSSM(nn.Module):
     ) -> State:
         """Prior step: ``(N, ...)`` state and ``(N, A)`` action to the prior state at the next step ``(N, ...)``.
 
+        An action narrower than :attr:`action_size` is zero-padded at the end: a CoWorld source model is built for
+        the wider of the source's and the target's action spaces and reads both (:mod:`coworld.agents.coworld`).
         ``noise (N, S, K)``: the sample's exponential noise (see :meth:`OneHotCategorical.rsample`), drawn here
         when None."""
+        prev_action = pad_action(prev_action, self.action_size)
         stoch = prev_state["stoch"].reshape(prev_action.shape[0], -1)
         x = self.img_in(torch.cat([stoch, prev_action.to(stoch.dtype)], dim=-1))
         deter = self.cell(x, prev_state["deter"])
@@ -161,6 +166,17 @@ class RSSM(nn.Module):
         """Straight-through one-hot sample (``sample``, with ``noise`` if given) or the one-hot mode, ``(N, S, K)``."""
         dist = OneHotCategorical(logits, normalised=True)
         return dist.rsample(noise) if sample else dist.mode
+
+
+def pad_action(action: Tensor, size: int) -> Tensor:
+    """``(..., A)`` actions zero-padded at the end to ``(..., size)``; ``A > size`` raises ``ValueError`` (an action
+    space wider than the model's input is a wiring error, never truncated)."""
+    width = action.shape[-1]
+    if width == size:
+        return action
+    if width > size:
+        raise ValueError(f"actions of size {width} do not fit a model whose action input has size {size}")
+    return torch.nn.functional.pad(action, (0, size - width))
 
 
 def stack_states(states: list[State], dim: int = 1) -> State:

@@ -115,6 +115,19 @@ def _markdown(root: Path, results: list[RunResult], figures: list[tuple[str, str
     ablation = tables.results_table(results, variants=True)
     if ablation and len({r.variant for r in results if r.algo == "coworld"}) > 1:
         lines += ["## Ablation (CoWorld terms switched off)", "", ablation, ""]
+    from coworld.report.choice import choice_lines
+
+    choices = choice_lines(results, skipped)
+    if choices:
+        lines += [
+            "## Source choice",
+            "",
+            "Runs that chose among several sources: each candidate's distance to the target (Eq. 3's KL between its"
+            " latents and the target's on target frames; `coworld.agents.choice`), the chosen one in bold.",
+            "",
+            *choices,
+            "",
+        ]
     values = tables.value_table(results)
     if values:
         lines += [

@@ -39,7 +39,7 @@ from coworld.config import PRESETS, make_config
 from coworld.errors import ConfigError, CoworldError
 from coworld.report import paper
 from coworld.report.paper import PaperTable
-from coworld.training.train import ALGOS, NEEDS_SOURCE, check_config
+from coworld.training.train import ALGOS, NEEDS_SOURCE, check_config, check_source, parse_sources
 
 COLLECT_POLICIES = ("dreamerv2", "random")
 QUALITIES = ("medium-replay", "medium-expert", "medium", "expert")
@@ -142,17 +142,13 @@ class SweepSpec:
         """Raise CoworldError with one line if anything in the grid is invalid; returns self."""
         if not self.pairs:
             raise CoworldError("the sweep has no pairs; pass --pairs SOURCE:TARGET[,...] or --table")
-        for source, target in self.pairs:
-            s, t = envs.task_spec(source), envs.task_spec(target)
-            if s.action_size != t.action_size:
-                raise CoworldError(
-                    f"pair {source}:{target}: source has {s.action_size} action dimensions, target {t.action_size}"
-                )
         if not self.algos:
             raise CoworldError(f"the sweep has no algorithms; choose from {', '.join(ALGOS)}")
         for algo in self.algos:
             if algo not in ALGOS:
                 raise CoworldError(f"unknown algorithm {algo!r}; choose from {', '.join(ALGOS)}")
+        for source, target in self.pairs:
+            check_pair(source, target, self.algos)
         if not self.seeds or len(set(self.seeds)) != len(self.seeds):
             raise CoworldError(f"seeds must be distinct and at least one, got {list(self.seeds)}")
         if len(self.seeds) > MAX_SEEDS:
@@ -479,9 +475,12 @@ def dmc_medium_expert_table() -> SweepSpec:
 def robodesk_table() -> SweepSpec:
     """Its Figure 4: Meta-World sources, RoboDesk targets (4-D against 5-D actions), medium-replay.
 
-    Registered in :data:`TABLES` once the RoboDesk tasks exist (:meth:`SweepSpec.check` names every task).
+    Without the two DreamerV2 fine-tunings: they carry the source agent's networks over to the target, which needs
+    one action size (:func:`coworld.training.train.check_source`).
     """
-    return later_table(paper.META_WORLD_TO_ROBODESK, LATER_ROBODESK_OVERRIDES)
+    spec = later_table(paper.META_WORLD_TO_ROBODESK, LATER_ROBODESK_OVERRIDES)
+    one_size = ("dreamerv2-finetune", "dreamerv2-finetune-ewc")
+    return dataclasses.replace(spec, algos=tuple(a for a in spec.algos if a not in one_size))
 
 
 TABLES: dict[str, Any] = {
@@ -493,6 +492,7 @@ TABLES: dict[str, Any] = {
     "metaworld": lambda: SweepSpec(pairs=TABLE2_PAIRS),
     "dmc-mr": dmc_medium_replay_table,
     "dmc-me": dmc_medium_expert_table,
+    "robodesk": robodesk_table,
     "ablation": lambda: SweepSpec(
         pairs=(("mw_drawer_close", "mw_button_press"),), algos=("coworld", "dreamerv2"), variants=ABLATION
     ),
@@ -509,16 +509,39 @@ def named_table(name: str) -> SweepSpec:
 # -- grids from the command line and TOML files ---------------------------------------------------------------------
 
 
+def check_pair(source: str, target: str, algos: Sequence[str]) -> None:
+    """A pair the grid's algorithms can serve (one CoworldError line otherwise): its source is one task or several
+    joined by ``+`` (CoWorld's automatic source choice), each known and none twice; CoWorld takes any action sizes,
+    a fine-tuned DreamerV2 one source of the target's (:func:`coworld.training.train.check_source`)."""
+    try:
+        sources = parse_sources(source)
+        envs.task_spec(target)
+        for algo in (a for a in algos if a in NEEDS_SOURCE):
+            if len(sources) > 1 and algo != "coworld":
+                raise CoworldError(
+                    f"{algo} takes one source; several ({source}) are CoWorld's automatic source choice: drop {algo}"
+                    " from --algos or give this pair one source"
+                )
+            for name in sources:
+                check_source(algo, name, target)
+    except CoworldError as err:
+        raise CoworldError(f"pair {source}:{target}: {err}") from None
+
+
 def parse_pairs(text: str) -> tuple[tuple[str, str], ...]:
-    """``"a:b,c:d"`` -> ``(("a", "b"), ("c", "d"))``; task names are checked."""
+    """``"a:b,c:d"`` -> ``(("a", "b"), ("c", "d"))``; ``"a+b:c"``: CoWorld choosing between sources a and b for
+    target c (:mod:`coworld.agents.choice`). Task names are checked."""
     pairs = []
     for item in (part.strip() for part in text.split(",")):
         if not item:
             continue
         source, sep, target = item.partition(":")
         if not sep or not source or not target:
-            raise CoworldError(f"bad pair {item!r}: write SOURCE:TARGET, e.g. walker_walk:walker_uphill")
-        envs.task_spec(source), envs.task_spec(target)
+            raise CoworldError(
+                f"bad pair {item!r}: write SOURCE:TARGET (or SOURCE+SOURCE:TARGET), e.g. walker_walk:walker_uphill"
+            )
+        source = "+".join(parse_sources(source))
+        envs.task_spec(target)
         pairs.append((source, target))
     if not pairs:
         raise CoworldError("--pairs is empty; write SOURCE:TARGET[,SOURCE:TARGET...]")

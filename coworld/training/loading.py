@@ -71,6 +71,12 @@ def load_run_checkpoint(
     return state
 
 
+def sources(info: Mapping[str, Any]) -> list[str]:
+    """The source tasks a run description names: one, or the candidates of CoWorld's automatic choice (the chosen
+    one is what its checkpoint records)."""
+    return str(info["source"]).replace("+", ",").split(",")
+
+
 def check_matches(state: Mapping[str, Any], ckpt: Path, config: Config, info: Mapping[str, Any]) -> None:
     """Refuse a checkpoint that is not what its run folder says: another algorithm, target or source task, or
     config (the config fixes every network's shape)."""
@@ -81,7 +87,7 @@ def check_matches(state: Mapping[str, Any], ckpt: Path, config: Config, info: Ma
         raise CheckpointError(f"{ckpt} is a {state.get('kind')!r} checkpoint but {label}; {fix}")
     if "task" in state and state["task"] != info["target"]:
         raise CheckpointError(f"{ckpt} was trained on {state['task']} but {label}; {fix}")
-    if "source_task" in state and info.get("source") is not None and state["source_task"] != info["source"]:
+    if "source_task" in state and info.get("source") is not None and state["source_task"] not in sources(info):
         raise CheckpointError(f"{ckpt} learned from source {state['source_task']}, not {info['source']}; {fix}")
     saved = state.get("config")
     if isinstance(saved, Mapping):

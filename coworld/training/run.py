@@ -63,7 +63,17 @@ def preset_warnings(preset: str, device: str, algo: str = "dreamerv2") -> list[s
     ]
 
 
-RUN_ARTEFACTS = ("checkpoint.pt", "metrics.jsonl", "tb", "source", "source_replay.h5", "eval.json")
+RUN_ARTEFACTS = (
+    "checkpoint.pt",
+    "metrics.jsonl",
+    "tb",
+    "source",
+    "source_replay.h5",
+    "eval.json",
+    "source_choice.json",  # CoWorld choosing among several sources (coworld.agents.choice)
+    "sources",
+    "selection",
+)
 """What training leaves in a run folder besides its description (``run.json``, then ``config.json``, written
 last): a folder holding any of these but no ``config.json`` was not described by ``coworld train``, or was
 damaged, and is refused rather than resumed. Other files (a sweep's record, notes) are left alone."""

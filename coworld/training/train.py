@@ -31,10 +31,10 @@ ALGOS = (
 )
 MODEL_FREE = ("curl", "curl-cql", "drq-bc")
 NEEDS_SOURCE = ("coworld", "dreamerv2-finetune", "dreamerv2-finetune-ewc")
-MODEL_BASED = ("coworld", "dreamerv2", "dreamerv2-penalty", "dreamerv2-finetune", "lompo", "dreamerv2-finetune-ewc")
-"""The algorithms that train DreamerV2's world model (and read ``train.backend``)."""
 """Algorithms that also learn online in a source task (``--source``); the others learn from the target dataset
 alone."""
+MODEL_BASED = ("coworld", "dreamerv2", "dreamerv2-penalty", "dreamerv2-finetune", "lompo", "dreamerv2-finetune-ewc")
+"""The algorithms that train DreamerV2's world model (and read ``train.backend``)."""
 
 CHECKPOINT_KINDS = {
     "coworld": "coworld",
@@ -50,8 +50,47 @@ CHECKPOINT_KINDS = {
 
 
 def default_logdir(algo: str, source: str | None, target: str, seed: int) -> Path:
-    pair = f"{source}-{target}" if source and algo in NEEDS_SOURCE else target
+    sources = "+".join(parse_sources(source)) if source else None  # a list of sources is written a+b in names
+    pair = f"{sources}-{target}" if sources and algo in NEEDS_SOURCE else target
     return Path("runs") / f"{algo}-{pair}-s{seed}"
+
+
+def parse_sources(text: str) -> tuple[str, ...]:
+    """``--source``: one task, or several (CoWorld's automatic choice) separated by ``,`` (or ``+``, as sweep pairs
+    and run folder names write them); each a known task, none twice. One CoworldError line otherwise."""
+    names = [part.strip() for part in text.replace("+", ",").split(",")]
+    if not all(names):
+        raise CoworldError(f"source list {text!r} has an empty name; write TASK or TASK,TASK,... (see `coworld tasks`)")
+    for name in names:
+        envs.task_spec(name)
+    repeated = next((name for i, name in enumerate(names) if name in names[:i]), None)
+    if repeated is not None:
+        raise CoworldError(f"source list {text!r} names {repeated} twice; give each candidate source once")
+    return tuple(names)
+
+
+def check_source(algo: str, source: str, target: str) -> list[str]:
+    """What ``algo`` requires of a source for ``target`` (one CoworldError line); returns the warnings.
+
+    CoWorld serves any two action sizes (every task here acts in a box ``[-1, 1]^A``; see
+    :func:`coworld.agents.coworld.source_model_action_size`). DreamerV2 fine-tuning carries the source agent's
+    networks over to the target, so it needs one action size."""
+    source_spec, target_spec = envs.task_spec(source), envs.task_spec(target)
+    if algo != "coworld" and source_spec.action_size != target_spec.action_size:
+        raise CoworldError(
+            f"source {source} has {source_spec.action_size} action dimensions but target {target} has"
+            f" {target_spec.action_size}; {algo} carries the source agent's networks over to the target, so pick a"
+            f" source with {target_spec.action_size} (see `coworld tasks`), or use --algo coworld, which serves any two"
+        )
+    if source_spec.embodiment == target_spec.embodiment or (source, target) in envs.PAIRS:
+        return []
+    paired = envs.paired_source(target)
+    shared = "share an action size" if source_spec.action_size == target_spec.action_size else "share no action size"
+    return [
+        f"source {source} ({source_spec.embodiment}) and target {target} ({target_spec.embodiment}) are"
+        f" different bodies that {shared}; the papers pair tasks of one body, and Meta-World sources with RoboDesk"
+        " targets" + (f" ({paired} -> {target})" if paired else "")
+    ]
 
 
 @dataclass(frozen=True)
@@ -111,19 +150,14 @@ def check_job(
         if source is None:
             paired = envs.paired_source(target) or "a task of the target's body (see `coworld tasks`)"
             raise CoworldError(f"{algo} needs an online source domain: pass --source, e.g. --source {paired}")
-        source_spec = envs.task_spec(source)
-        if source_spec.action_size != target_spec.action_size:
+        sources = parse_sources(source)
+        if len(sources) > 1 and algo != "coworld":
             raise CoworldError(
-                f"source {source} has {source_spec.action_size} action dimensions but target {target} has"
-                f" {target_spec.action_size}; pick a source with the target's action space (see `coworld tasks`)"
+                f"{algo} takes one --source; a list ({source}) is CoWorld's automatic source choice (--algo coworld)"
             )
-        if source_spec.embodiment != target_spec.embodiment:
-            paired = envs.paired_source(target)
-            warnings.append(
-                f"source {source} ({source_spec.embodiment}) and target {target} ({target_spec.embodiment}) are"
-                " different bodies that only share an action size; the paper pairs tasks of one body"
-                + (f" ({paired} -> {target})" if paired else "")
-            )
+        for name in sources:
+            warnings += check_source(algo, name, target)
+        source = ",".join(sources)
     extra = list(overrides)
     if seed is not None:
         extra.append(f"seed={seed}")
@@ -183,9 +217,21 @@ def check_resumable(run_dir: Path, config: Config, info: dict[str, Any]) -> None
     if main.exists():
         keys = COWORLD_CHECKPOINT_KEYS if info["algo"] == "coworld" else CHECKPOINT_KEYS
         load_run_checkpoint(main, config, info, keys=keys, mmap=True)
-    elif source.exists():
-        source_info = {**info, "online": True, "target": info["source"]}  # the source agent learned in the source task
-        load_run_checkpoint(source, config, source_info, keys=ONLINE_KEYS, mmap=True)
+        return
+    sources = parse_sources(info["source"]) if info.get("source") else ()
+    if len(sources) > 1:  # CoWorld choosing its source: each candidate's pretraining, the chosen one's once moved
+        from coworld.training.source_choice import candidate_dir, read_choice
+
+        choice = read_choice(run_dir, sources)
+        checks = [(candidate_dir(run_dir, name) / "source" / "checkpoint.pt", name) for name in sources]
+        if choice is not None:
+            checks.append((source, choice.chosen))
+    else:
+        checks = [(source, info.get("source"))]
+    for path, task in checks:
+        if path.exists():  # the source agent learned in the source task
+            source_info = {**info, "online": True, "target": task, "source": None}
+            load_run_checkpoint(path, config, source_info, keys=ONLINE_KEYS, mmap=True)
 
 
 def check_schedule(algo: str, config: Config) -> None:

@@ -25,6 +25,7 @@ import torch
 
 from coworld import envs
 from coworld.errors import CoworldError
+from coworld.training.source_choice import trained_source
 from coworld.viz.media import require_extra
 from coworld.viz.predictions import batch_tensors
 from coworld.viz.runs import EpisodeSource, EpisodeStore, count_episodes, episode_windows, get_episodes
@@ -288,7 +289,7 @@ def latents_of_run(
 
     target_path = run_dataset(run.info, dataset)
     replay = run.run_dir / "source_replay.h5"
-    source_task = source or run.info.get("source")
+    source_task = source or trained_source(run.run_dir, run.info)
     with contextlib.ExitStack() as stack:
         target = stack.enter_context(open_dataset(target_path))
         if target.task != run.info["target"]:

@@ -102,8 +102,16 @@ def load_run_models(path: str | Path, device: str = "auto") -> RunModels:
     action_size = envs.task_spec(info["target"]).action_size
     agents = {}
     for name, key in parts.items():
-        agent = make_agent("dreamerv2" if algo == "coworld" else algo, config=config, action_size=action_size,
-                           device=torch_device)  # fmt: skip
+        if name == "source":  # a CoWorld source agent: its own actor, a model reading both action spaces
+            from coworld.agents.coworld import source_model_action_size
+            from coworld.agents.dreamerv2 import DreamerV2
+
+            size = envs.task_spec(str(state.get("source_task", info["source"]))).action_size
+            model_size = source_model_action_size(size, action_size)
+            agent = DreamerV2(config=config, action_size=size, device=torch_device, model_action_size=model_size)
+        else:
+            agent = make_agent("dreamerv2" if algo == "coworld" else algo, config=config, action_size=action_size,
+                               device=torch_device)  # fmt: skip
         load_agent_state(agent, state[key], ckpt, f"a {algo} run of this config")
         agents[name] = agent
     return RunModels(run_dir=run_dir, config=config, info=info, agents=agents)

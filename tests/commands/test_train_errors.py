@@ -25,10 +25,14 @@ def assert_one_line_error(code, output, *needles):
         assert needle in lines[0], lines[0]
 
 
-def test_mismatched_action_spaces(tmp_path, toy_dataset):
+def test_mismatched_action_spaces_for_fine_tuning(tmp_path, toy_dataset):
+    """CoWorld takes a source of another action size (tests/agents/test_coworld_action_sizes.py); fine-tuning, which
+    carries the source agent's networks over, does not."""
     code, out = run(
         [
             "train",
+            "--algo",
+            "dreamerv2-finetune",
             "--source",
             "walker_walk",
             "--target",

@@ -19,7 +19,9 @@ def episode_return(env, policy) -> float:
     return total
 
 
-@pytest.mark.parametrize("name", ["toy_reach", "toy_reach_shifted", "toy_reach_centre", "toy_reach_centre_shifted"])
+@pytest.mark.parametrize(
+    "name", ["toy_reach", "toy_reach_shifted", "toy_reach_centre", "toy_reach_centre_shifted", "toy_reach_shifted_act3"]
+)
 def test_recorded_returns_and_a_clear_gap(name: str) -> None:
     """Re-measure the TaskSpec's returns exactly as recorded (200 episodes, seeds 0-199, env seed 0)."""
     env = make(name, seed=0)

@@ -113,3 +113,14 @@ def test_a_later_table_runs_every_algorithm_through_sweep_and_report(tmp_path, n
     header = next(line for line in text.splitlines() if line.startswith("| pair |"))
     assert sorted(header.strip("| ").split(" | ")[1:]) == sorted(algos)  # every algorithm of the table finished
     assert "## Not finished" not in text
+
+
+@pytest.mark.slow
+def test_the_robodesk_table_trains_a_meta_world_source_with_a_robodesk_target(tmp_path):
+    """Figure 4's first pair across environments (4-d Meta-World source, 5-d RoboDesk target): CoWorld and the
+    penalised DreamerV2, the two columns with printed numbers, beside the paper's."""
+    table, pair = paper.META_WORLD_TO_ROBODESK, ("mw_button_press", "robodesk_push_button")
+    algos = ["dreamerv2-penalty", "coworld"]
+    text = sweep_then_report(tmp_path, table.name, pair, algos)
+    assert_side_by_side(text, table, pair, algos)
+    assert "## Not finished" not in text

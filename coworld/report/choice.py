@@ -1,0 +1,32 @@
+"""The report's "Source choice" section: for each run that chose among several sources (``--source A,B,...``), the
+candidates' distances to the target and the one it chose (``source_choice.json``, :mod:`coworld.agents.choice`)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from coworld.errors import CoworldError
+from coworld.report.results import RunResult
+from coworld.training.source_choice import read_choice
+
+
+def choice_lines(results: list[RunResult], problems: list[str]) -> list[str]:
+    """One Markdown line per run with a source choice (the chosen in bold); a damaged record goes to
+    ``problems``."""
+    lines = []
+    for r in results:
+        try:
+            choice = read_choice(Path(r.run_dir))
+        except CoworldError as err:
+            problems.append(str(err))
+            continue
+        if choice is None:
+            continue
+        listed = ", ".join(
+            f"**{name}** {choice.distances[name]:.4g}"
+            if name == choice.chosen
+            else f"{name} {choice.distances[name]:.4g}"
+            for name in choice.candidates
+        )
+        lines.append(f"- `{r.run_dir}` ({r.target}, seed {r.seed}): {listed}")
+    return lines
