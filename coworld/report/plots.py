@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 
 from coworld.errors import CoworldError
-from coworld.report.results import ONLINE_ALGO, RunResult, learning_curve, wall_clock_curve
+from coworld.report.results import ONLINE_ALGO, RunResult, learning_curve, read_run_metrics, wall_clock_curve
 from coworld.report.tables import ALGO_ORDER
 
 
@@ -72,7 +72,8 @@ def learning_curves(results: Sequence[RunResult], target: str, path: Path) -> bo
     drawn = False
     for label in _labels(runs):
         labelled = [r for r in runs if r.label == label]
-        curves = [c for c in (learning_curve(Path(r.run_dir), r.algo) for r in labelled) if c]
+        records = {r.run_dir: read_run_metrics(Path(r.run_dir)) for r in labelled}  # one read serves both axes
+        curves = [c for c in (learning_curve(Path(r.run_dir), r.algo, records[r.run_dir]) for r in labelled) if c]
         if not curves:
             continue
         steps, mean, std = mean_band(curves)
@@ -82,7 +83,7 @@ def learning_curves(results: Sequence[RunResult], target: str, path: Path) -> bo
         colour = line[0].get_color()
         by_updates.fill_between(steps, mean - std, mean + std, alpha=0.2, color=colour, linewidth=0)
         for r in labelled:
-            clock = wall_clock_curve(Path(r.run_dir), r.algo)
+            clock = wall_clock_curve(Path(r.run_dir), r.algo, records[r.run_dir])
             if clock:
                 hours, values = zip(*clock, strict=True)
                 by_clock.plot(hours, values, color=colour, alpha=0.7, linewidth=1.0)
