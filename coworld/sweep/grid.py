@@ -20,8 +20,8 @@ Named grids (:data:`TABLES`):
   :func:`dmc_cpu_table`.
 * ``dmc-mr`` and ``dmc-me`` -- the later CoWorld paper's (NeurIPS 2024) Tables 3 and 9: its six DMC pairs on
   medium-replay and medium-expert target datasets, with its Table 8 hyperparameters (:func:`later_table`);
-  ``coworld report`` puts its published numbers (:mod:`coworld.report.paper`) beside ours. Its Meta-World ->
-  RoboDesk pairs (:func:`robodesk_table`) join once the RoboDesk tasks are registered.
+  ``coworld report`` puts its published numbers (:mod:`coworld.report.paper`) beside ours.
+* ``robodesk`` -- its Meta-World -> RoboDesk pairs, across action sizes: :func:`robodesk_table`.
 """
 
 from __future__ import annotations
@@ -39,10 +39,10 @@ from coworld.config import PRESETS, make_config
 from coworld.errors import ConfigError, CoworldError
 from coworld.report import paper
 from coworld.report.paper import PaperTable
+from coworld.training.collect import TRAINED_QUALITIES as QUALITIES
 from coworld.training.train import ALGOS, NEEDS_SOURCE, check_config, check_source, parse_sources
 
 COLLECT_POLICIES = ("dreamerv2", "random")
-QUALITIES = ("medium-replay", "medium-expert", "medium", "expert")
 SEED_MAX = 2**32 - 1
 """The largest seed, as every command takes it (``--seed``)."""
 MAX_SEEDS = 1_000
