@@ -204,15 +204,17 @@ def test_the_command_killed_inside_the_second_candidate_resumes_and_keeps_the_fi
     run = tmp_path / "run"
     args = [*CLI, "train", "--source", CANDIDATES, "--target", "toy_reach_shifted", "--dataset", str(dataset)]
     args += ["--preset", "tiny", "--logdir", str(run), "--seed", "0", "--no-progress", "--threads", "1"]
-    args += [arg for item in SCHEDULE for arg in ("--set", item)]
+    # a longer pretraining than SCHEDULE's, so that the kill lands inside the second candidate's on a fast machine too
+    schedule = [*SCHEDULE, "coworld.pretrain_steps=400"]
+    args += [arg for item in schedule for arg in ("--set", item)]
     second = candidate_dir(run, "toy_reach_shifted_act3") / "source_replay.h5"
     proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
     try:
         deadline = time.time() + 300
         while not second.exists():
             assert proc.poll() is None and time.time() < deadline
-            time.sleep(0.02)
-        time.sleep(1.0)  # inside the second candidate's pretraining
+            time.sleep(0.01)
+        time.sleep(0.05)  # inside the second candidate's pretraining, which takes seconds
         os.killpg(proc.pid, signal.SIGKILL)
         proc.wait()
     finally:
