@@ -54,6 +54,7 @@ from coworld.training.checkpoint import CHECKPOINT_NAME, load_checkpoint, rng_st
 from coworld.training.evaluate import evaluate
 from coworld.training.logger import Logger, Rate
 from coworld.training.online import OnlineTrainer, make_source_trainer, source_replay_writer
+from coworld.training.train import parse_sources
 from coworld.viz.training import log_open_loop
 
 CHECKPOINT_KIND = "coworld"
@@ -279,7 +280,7 @@ def train_coworld(job: Any, *, device: torch.device, resumed: bool, progress: bo
     spec = task_spec(job.target)
     dataset = open_dataset(job.dataset)
     warm_target = None
-    candidates = tuple(str(job.source).split(","))
+    candidates = parse_sources(str(job.source))
     if len(candidates) > 1:  # several sources: choose one first, then Algorithm 1 with it (coworld.agents.choice)
         import dataclasses
 

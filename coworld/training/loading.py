@@ -19,7 +19,7 @@ from coworld.envs import task_spec
 from coworld.errors import CheckpointError, CoworldError
 from coworld.training.checkpoint import CHECKPOINT_NAME, load_checkpoint
 from coworld.training.run import load_run
-from coworld.training.train import ALGOS, CHECKPOINT_KINDS
+from coworld.training.train import ALGOS, CHECKPOINT_KINDS, parse_sources
 
 ONLINE_KIND = "dreamerv2-online"
 """The checkpoint of an agent that learned online (the dreamerv2 collector, a source agent's pretraining)."""
@@ -74,7 +74,7 @@ def load_run_checkpoint(
 def sources(info: Mapping[str, Any]) -> list[str]:
     """The source tasks a run description names: one, or the candidates of CoWorld's automatic choice (the chosen
     one is what its checkpoint records)."""
-    return str(info["source"]).replace("+", ",").split(",")
+    return list(parse_sources(str(info["source"])))
 
 
 def check_matches(state: Mapping[str, Any], ckpt: Path, config: Config, info: Mapping[str, Any]) -> None:

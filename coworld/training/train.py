@@ -236,8 +236,10 @@ def check_resumable(run_dir: Path, config: Config, info: dict[str, Any]) -> None
 
 def check_schedule(algo: str, config: Config) -> None:
     """The rules between config keys that only one algorithm reads (one line on what to change)."""
-    if algo in ("dreamerv2-penalty", "lompo"):
-        section = "penalty" if algo == "dreamerv2-penalty" else "lompo"
+    from coworld.agents.factory import agent_class
+
+    section = getattr(agent_class(algo), "section", None)  # the agents that learn an ensemble of models first
+    if section is not None:
         model_updates = getattr(config, section).model_updates
         total = config.coworld.iterations * config.coworld.target_updates
         if model_updates >= total:

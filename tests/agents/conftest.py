@@ -8,6 +8,7 @@ from pathlib import Path
 from types import ModuleType
 from typing import Any
 
+import numpy as np
 import pytest
 import torch
 
@@ -20,6 +21,33 @@ def toy_expert() -> ModuleType:
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
+
+
+def make_numpy_batch(rng: np.random.Generator, B: int = 2, T: int = 6) -> dict[str, np.ndarray]:
+    """A random 2-d-action batch as a dataset sampler gives it (numpy; uint8 images, ``is_first`` on each window's
+    first step), drawn from ``rng``."""
+    is_first = np.zeros((B, T), bool)
+    is_first[:, 0] = True
+    return {
+        "image": rng.integers(0, 256, (B, T, 64, 64, 3), dtype=np.uint8),
+        "action": rng.uniform(-1, 1, (B, T, 2)).astype(np.float32),
+        "reward": rng.standard_normal((B, T)).astype(np.float32),
+        "is_first": is_first,
+        "is_last": np.zeros((B, T), bool),
+        "is_terminal": np.zeros((B, T), bool),
+    }
+
+
+@pytest.fixture(scope="session")
+def numpy_batch() -> Callable[..., dict[str, np.ndarray]]:
+    """:func:`make_numpy_batch`: ``(rng, B=2, T=6) -> batch``."""
+    return make_numpy_batch
+
+
+@pytest.fixture(scope="session")
+def flat_params() -> Callable[[torch.nn.Module], torch.Tensor]:
+    """``module -> tensor``: a copy of all of ``module``'s parameters, flattened into one vector."""
+    return lambda module: torch.cat([p.detach().reshape(-1).clone() for p in module.parameters()])
 
 
 def make_target_batch(b: int = 3, t: int = 4, action_size: int = 2) -> dict[str, torch.Tensor]:

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import io
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 import pytest
@@ -18,36 +20,21 @@ from coworld.models.networks import frozen_parameters
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
-def _batch(rng: np.random.Generator, B: int = 2, T: int = 6) -> dict[str, np.ndarray]:
-    is_first = np.zeros((B, T), bool)
-    is_first[:, 0] = True
-    return {
-        "image": rng.integers(0, 256, (B, T, 64, 64, 3), dtype=np.uint8),
-        "action": rng.uniform(-1, 1, (B, T, 2)).astype(np.float32),
-        "reward": rng.standard_normal((B, T)).astype(np.float32),
-        "is_first": is_first,
-        "is_last": np.zeros((B, T), bool),
-        "is_terminal": np.zeros((B, T), bool),
-    }
-
-
-def _flat(module: torch.nn.Module) -> torch.Tensor:
-    return torch.cat([p.detach().reshape(-1).clone() for p in module.parameters()])
-
-
-def test_consolidate_anchors_the_current_weights_and_changes_nothing() -> None:
+def test_consolidate_anchors_the_current_weights_and_changes_nothing(
+    numpy_batch: Callable[..., Any], flat_params: Callable[..., Any]
+) -> None:
     config = make_config("cpu", ["device=cpu"])
     torch.manual_seed(0)
     agent = EwcDreamerV2(config=config, action_size=2)
     rng = np.random.default_rng(0)
     for _ in range(3):
-        agent.train(_batch(rng))
-    before = {name: _flat(module) for name, module in agent.networks().items()}
+        agent.train(numpy_batch(rng))
+    before = {name: flat_params(module) for name, module in agent.networks().items()}
     buffers = {k: v.clone() for k, v in agent.actor_critic.named_buffers()}
-    metrics = agent.consolidate(_batch(rng) for _ in range(3))
+    metrics = agent.consolidate(numpy_batch(rng) for _ in range(3))
     assert agent.consolidated and set(metrics) == {f"ewc/fisher_{name}" for name in NETWORKS}
     for name, module in agent.networks().items():
-        assert torch.equal(_flat(module), before[name])  # no step was taken
+        assert torch.equal(flat_params(module), before[name])  # no step was taken
         assert set(agent.anchor[name]) == {key for key, _ in module.named_parameters()}
         anchored = torch.cat([agent.anchor[name][key].reshape(-1) for key, _ in module.named_parameters()])
         assert torch.equal(anchored, before[name])
@@ -58,11 +45,11 @@ def test_consolidate_anchors_the_current_weights_and_changes_nothing() -> None:
     assert all(torch.equal(v, buffers[k]) for k, v in agent.actor_critic.named_buffers())
 
 
-def test_the_fisher_of_one_batch_is_its_squared_gradient_times_its_steps() -> None:
+def test_the_fisher_of_one_batch_is_its_squared_gradient_times_its_steps(numpy_batch: Callable[..., Any]) -> None:
     config = make_config("tiny", ["device=cpu"])
     torch.manual_seed(0)
     agent = EwcDreamerV2(config=config, action_size=2)
-    batch = _batch(np.random.default_rng(0), B=2, T=6)
+    batch = numpy_batch(np.random.default_rng(0), B=2, T=6)
     torch.manual_seed(5)
     agent.consolidate([batch])
     # By hand, with the same draws: the world model's loss, then the actor-critic's on the states it imagines from.
@@ -83,7 +70,7 @@ def test_the_fisher_of_one_batch_is_its_squared_gradient_times_its_steps() -> No
             torch.testing.assert_close(agent.fisher[name][key], expected, rtol=1e-5, atol=1e-12)
 
 
-def _trained(cls: type, *sets: str) -> DreamerV2:
+def _trained(numpy_batch: Callable[..., Any], cls: type, *sets: str) -> DreamerV2:
     """An agent of ``cls`` after 3 seeded updates (its "source" learning), consolidated on 3 batches if it can."""
     config = make_config("cpu", ["device=cpu", *sets])  # the cpu preset: return normalisation's statistics too
     torch.manual_seed(0)
@@ -91,22 +78,24 @@ def _trained(cls: type, *sets: str) -> DreamerV2:
     rng = np.random.default_rng(0)
     for i in range(3):
         torch.manual_seed(10 + i)
-        agent.train(_batch(rng))
+        agent.train(numpy_batch(rng))
     if isinstance(agent, EwcDreamerV2):
-        agent.consolidate(_batch(rng) for _ in range(3))
+        agent.consolidate(numpy_batch(rng) for _ in range(3))
     return agent
 
 
-def test_weight_zero_trains_as_dreamerv2_and_a_large_weight_holds_the_source_weights() -> None:
+def test_weight_zero_trains_as_dreamerv2_and_a_large_weight_holds_the_source_weights(
+    numpy_batch: Callable[..., Any], flat_params: Callable[..., Any]
+) -> None:
     rng = np.random.default_rng(7)
-    batches = [_batch(rng) for _ in range(8)]
-    plain = _trained(DreamerV2)
+    batches = [numpy_batch(rng) for _ in range(8)]
+    plain = _trained(numpy_batch, DreamerV2)
     for i, batch in enumerate(batches):
         torch.manual_seed(20 + i)
         plain.train(batch)
     moved = {}
     for weight in (0.0, 1e8):
-        agent = _trained(EwcDreamerV2, f"ewc.weight={weight}")
+        agent = _trained(numpy_batch, EwcDreamerV2, f"ewc.weight={weight}")
         for i, batch in enumerate(batches):
             torch.manual_seed(20 + i)
             metrics = agent.train(batch)
@@ -114,7 +103,7 @@ def test_weight_zero_trains_as_dreamerv2_and_a_large_weight_holds_the_source_wei
         if weight == 0.0:  # EWC's term is zero: the updates are DreamerV2's
             assert metrics["wm/ewc"] == 0.0
             for name, module in agent.networks().items():
-                torch.testing.assert_close(_flat(module), _flat(dict(_networks(plain))[name]))
+                torch.testing.assert_close(flat_params(module), flat_params(dict(_networks(plain))[name]))
         # How far each network went where the source's fit cares: sum_i F_i (theta_i - theta*_i)^2.
         moved[weight] = {
             name: ewc_penalty(dict(module.named_parameters()), agent.anchor[name], agent.fisher[name], 2.0).item()
@@ -132,8 +121,10 @@ def _networks(agent: DreamerV2):
     }.items()
 
 
-def test_state_dict_round_trip_keeps_the_anchor_and_fisher_through_weights_only_load() -> None:
-    agent = _trained(EwcDreamerV2)
+def test_state_dict_round_trip_keeps_the_anchor_and_fisher_through_weights_only_load(
+    numpy_batch: Callable[..., Any],
+) -> None:
+    agent = _trained(numpy_batch, EwcDreamerV2)
     buffer = io.BytesIO()
     torch.save(agent.state_dict(), buffer)
     buffer.seek(0)
@@ -145,7 +136,7 @@ def test_state_dict_round_trip_keeps_the_anchor_and_fisher_through_weights_only_
             assert torch.equal(clone.fisher[name][key], value) and torch.equal(
                 clone.anchor[name][key], agent.anchor[name][key]
             )
-    batch = _batch(np.random.default_rng(1))
+    batch = numpy_batch(np.random.default_rng(1))
     torch.manual_seed(3)
     expected = agent.train(batch)
     torch.manual_seed(3)

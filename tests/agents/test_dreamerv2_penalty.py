@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import io
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 import pytest
@@ -14,56 +16,47 @@ from coworld.config import make_config
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
-def _batch(rng: np.random.Generator, B: int = 2, T: int = 6) -> dict[str, np.ndarray]:
-    is_first = np.zeros((B, T), bool)
-    is_first[:, 0] = True
-    return {
-        "image": rng.integers(0, 256, (B, T, 64, 64, 3), dtype=np.uint8),
-        "action": rng.uniform(-1, 1, (B, T, 2)).astype(np.float32),
-        "reward": rng.standard_normal((B, T)).astype(np.float32),
-        "is_first": is_first,
-        "is_last": np.zeros((B, T), bool),
-        "is_terminal": np.zeros((B, T), bool),
-    }
-
-
-def _flat(module: torch.nn.Module) -> torch.Tensor:
-    return torch.cat([p.detach().reshape(-1).clone() for p in module.parameters()])
-
-
-def test_world_model_phase_then_actor_critic_phase_on_the_penalised_reward() -> None:
+def test_world_model_phase_then_actor_critic_phase_on_the_penalised_reward(
+    numpy_batch: Callable[..., Any], flat_params: Callable[..., Any]
+) -> None:
     config = make_config("tiny", ["device=cpu", "penalty.model_updates=2", "penalty.weight=3.0"])
     torch.manual_seed(0)
     agent = PenaltyDreamerV2(config=config, action_size=2)
     rng = np.random.default_rng(0)
-    wm, actor, heads = _flat(agent.world_model), _flat(agent.actor_critic.actor), _flat(agent.ensemble)
+    wm, actor, heads = (
+        flat_params(agent.world_model),
+        flat_params(agent.actor_critic.actor),
+        flat_params(agent.ensemble),
+    )
     for _ in range(2):
-        metrics = agent.train(_batch(rng))
+        metrics = agent.train(numpy_batch(rng))
         assert "penalty/head_kl" in metrics and not any(key.startswith("actor/") for key in metrics)
-    assert not torch.equal(_flat(agent.world_model), wm) and not torch.equal(_flat(agent.ensemble), heads)
-    assert torch.equal(_flat(agent.actor_critic.actor), actor)  # phase 1 leaves the actor alone
-    wm, heads = _flat(agent.world_model), _flat(agent.ensemble)
-    metrics = agent.train(_batch(rng))
-    assert torch.equal(_flat(agent.world_model), wm) and torch.equal(_flat(agent.ensemble), heads)  # frozen
-    assert not torch.equal(_flat(agent.actor_critic.actor), actor)
+    assert not torch.equal(flat_params(agent.world_model), wm) and not torch.equal(flat_params(agent.ensemble), heads)
+    assert torch.equal(flat_params(agent.actor_critic.actor), actor)  # phase 1 leaves the actor alone
+    wm, heads = flat_params(agent.world_model), flat_params(agent.ensemble)
+    metrics = agent.train(numpy_batch(rng))
+    assert torch.equal(flat_params(agent.world_model), wm) and torch.equal(flat_params(agent.ensemble), heads)  # frozen
+    assert not torch.equal(flat_params(agent.actor_critic.actor), actor)
     # The actor-critic learnt from r - 3 * u: the imagined reward it logs is the head's reward less the penalty.
     assert metrics["penalty/disagreement"] > 0.0
     expected = metrics["penalty/raw"] - 3.0 * metrics["penalty/disagreement"]
     assert metrics["imag/reward"] == pytest.approx(expected, rel=1e-4, abs=1e-5)
 
 
-def test_state_dict_round_trip_keeps_the_heads_through_weights_only_load() -> None:
+def test_state_dict_round_trip_keeps_the_heads_through_weights_only_load(
+    numpy_batch: Callable[..., Any], flat_params: Callable[..., Any]
+) -> None:
     config = make_config("tiny", ["device=cpu", "penalty.model_updates=1"])
     torch.manual_seed(0)
     agent = PenaltyDreamerV2(config=config, action_size=2)
-    agent.train(_batch(np.random.default_rng(0)))
+    agent.train(numpy_batch(np.random.default_rng(0)))
     buffer = io.BytesIO()
     torch.save(agent.state_dict(), buffer)
     buffer.seek(0)
     clone = PenaltyDreamerV2(config=config, action_size=2)
     clone.load_state_dict(torch.load(buffer, weights_only=True))
-    assert clone.updates == 1 and torch.equal(_flat(clone.ensemble), _flat(agent.ensemble))
-    batch = _batch(np.random.default_rng(1))
+    assert clone.updates == 1 and torch.equal(flat_params(clone.ensemble), flat_params(agent.ensemble))
+    batch = numpy_batch(np.random.default_rng(1))
     torch.manual_seed(3)
     expected = agent.train(batch)
     torch.manual_seed(3)

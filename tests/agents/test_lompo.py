@@ -4,6 +4,8 @@ checkpoints."""
 from __future__ import annotations
 
 import io
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 import pytest
@@ -15,53 +17,47 @@ from coworld.config import make_config
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
-def _batch(rng: np.random.Generator, B: int = 2, T: int = 6) -> dict[str, np.ndarray]:
-    is_first = np.zeros((B, T), bool)
-    is_first[:, 0] = True
-    return {
-        "image": rng.integers(0, 256, (B, T, 64, 64, 3), dtype=np.uint8),
-        "action": rng.uniform(-1, 1, (B, T, 2)).astype(np.float32),
-        "reward": rng.standard_normal((B, T)).astype(np.float32),
-        "is_first": is_first,
-        "is_last": np.zeros((B, T), bool),
-        "is_terminal": np.zeros((B, T), bool),
-    }
-
-
-def _flat(module: torch.nn.Module) -> torch.Tensor:
-    return torch.cat([p.detach().reshape(-1).clone() for p in module.parameters()])
-
-
 def _agent(*sets: str) -> Lompo:
     torch.manual_seed(0)
     return Lompo(config=make_config("tiny", ["device=cpu", *sets]), action_size=2)
 
 
-def test_world_model_phase_then_latent_actor_critic_phase_on_the_penalised_reward() -> None:
+def test_world_model_phase_then_latent_actor_critic_phase_on_the_penalised_reward(
+    numpy_batch: Callable[..., Any], flat_params: Callable[..., Any]
+) -> None:
     agent = _agent("lompo.model_updates=2", "lompo.weight=3.0", "lompo.tau=0.5")
     ac = agent.actor_critic
     rng = np.random.default_rng(0)
-    wm, heads, actor, critic = _flat(agent.world_model), _flat(agent.ensemble), _flat(ac.actor), _flat(ac.critic)
+    wm, heads, actor, critic = (
+        flat_params(agent.world_model),
+        flat_params(agent.ensemble),
+        flat_params(ac.actor),
+        flat_params(ac.critic),
+    )
     for _ in range(2):
-        metrics = agent.train(_batch(rng))
+        metrics = agent.train(numpy_batch(rng))
         assert "penalty/head_kl" in metrics and not any(key.startswith(("actor/", "lompo/")) for key in metrics)
-    assert not torch.equal(_flat(agent.world_model), wm) and not torch.equal(_flat(agent.ensemble), heads)
-    assert torch.equal(_flat(ac.actor), actor) and torch.equal(_flat(ac.critic), critic)  # phase 1 leaves them
-    wm, heads, target = _flat(agent.world_model), _flat(agent.ensemble), _flat(ac.target_critic)
-    metrics = agent.train(_batch(rng))
-    assert torch.equal(_flat(agent.world_model), wm) and torch.equal(_flat(agent.ensemble), heads)  # frozen
-    assert not torch.equal(_flat(ac.actor), actor) and not torch.equal(_flat(ac.critic), critic)
+    assert not torch.equal(flat_params(agent.world_model), wm) and not torch.equal(flat_params(agent.ensemble), heads)
+    assert torch.equal(flat_params(ac.actor), actor) and torch.equal(
+        flat_params(ac.critic), critic
+    )  # phase 1 leaves them
+    wm, heads, target = flat_params(agent.world_model), flat_params(agent.ensemble), flat_params(ac.target_critic)
+    metrics = agent.train(numpy_batch(rng))
+    assert torch.equal(flat_params(agent.world_model), wm) and torch.equal(flat_params(agent.ensemble), heads)  # frozen
+    assert not torch.equal(flat_params(ac.actor), actor) and not torch.equal(flat_params(ac.critic), critic)
     # The target Q-functions moved halfway (tau 0.5) toward the stepped ones.
-    torch.testing.assert_close(_flat(ac.target_critic), 0.5 * target + 0.5 * _flat(ac.critic))
+    torch.testing.assert_close(flat_params(ac.target_critic), 0.5 * target + 0.5 * flat_params(ac.critic))
     # The imagined transitions learnt from r - 3 * std_k log p_k(z').
     assert metrics["lompo/spread"] > 0.0
     expected = metrics["lompo/imag_reward"] - 3.0 * metrics["lompo/spread"]
     assert metrics["lompo/penalised_reward"] == pytest.approx(expected, rel=1e-4, abs=1e-5)
 
 
-def test_real_transitions_stay_inside_episodes_and_pair_each_step_with_the_next_action_and_reward() -> None:
+def test_real_transitions_stay_inside_episodes_and_pair_each_step_with_the_next_action_and_reward(
+    numpy_batch: Callable[..., Any],
+) -> None:
     agent = _agent("lompo.batch_size=400")
-    batch = agent.to_batch(_batch(np.random.default_rng(0), B=2, T=6))
+    batch = agent.to_batch(numpy_batch(np.random.default_rng(0), B=2, T=6))
     batch["is_first"][:, 3] = True  # each row holds two episodes: steps 0-2 and 3-5
     batch["reward"] = torch.tensor([[100.0 * b + t for t in range(6)] for b in range(2)])
     batch["action"] = batch["reward"][..., None].expand(2, 6, 2).clone()
@@ -80,9 +76,9 @@ def test_real_transitions_stay_inside_episodes_and_pair_each_step_with_the_next_
     assert torch.equal(real["not_done"], torch.ones(400))
 
 
-def test_imagined_transitions_chain_from_state_to_state() -> None:
+def test_imagined_transitions_chain_from_state_to_state(numpy_batch: Callable[..., Any]) -> None:
     agent = _agent("lompo.batch_size=12", "lompo.horizon=3")
-    batch = agent.to_batch(_batch(np.random.default_rng(1)))
+    batch = agent.to_batch(numpy_batch(np.random.default_rng(1)))
     with torch.no_grad():
         post, _, _ = agent.model_path.observe(batch)
     imagined, seen = agent.imagined_transitions(post)
@@ -108,18 +104,20 @@ def test_policy_acts_with_the_actor_and_values_with_the_smaller_q() -> None:
     assert np.abs(noisy).max() <= 1.0 and not np.allclose(noisy, action)
 
 
-def test_state_dict_round_trip_through_weights_only_load() -> None:
+def test_state_dict_round_trip_through_weights_only_load(
+    numpy_batch: Callable[..., Any], flat_params: Callable[..., Any]
+) -> None:
     agent = _agent("lompo.model_updates=1")
     rng = np.random.default_rng(0)
     for _ in range(2):
-        agent.train(_batch(rng))
+        agent.train(numpy_batch(rng))
     buffer = io.BytesIO()
     torch.save(agent.state_dict(), buffer)
     buffer.seek(0)
     clone = _agent("lompo.model_updates=1")
     clone.load_state_dict(torch.load(buffer, weights_only=True))
-    assert clone.updates == 2 and torch.equal(_flat(clone.actor_critic), _flat(agent.actor_critic))
-    batch = _batch(np.random.default_rng(1))
+    assert clone.updates == 2 and torch.equal(flat_params(clone.actor_critic), flat_params(agent.actor_critic))
+    batch = numpy_batch(np.random.default_rng(1))
     torch.manual_seed(3)
     expected = agent.train(batch)
     torch.manual_seed(3)
