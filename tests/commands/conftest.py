@@ -1,7 +1,9 @@
-"""A small random toy_reach_shifted dataset for the train / eval command tests."""
+"""Fixtures of the command tests: a small random toy_reach_shifted dataset, run folders as `coworld train` makes
+them, and `cli` / `one_line` (a command run in this process, and the check of its one-line refusal)."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -41,3 +43,33 @@ def make_run():
         return folder
 
     return make_run
+
+
+@pytest.fixture(scope="session")
+def cli() -> Callable[..., tuple[int, str]]:
+    """``cli(*args) -> (exit code, output)``: ``coworld ARGS`` in this process."""
+    from click.testing import CliRunner
+
+    from coworld.cli import main
+
+    def invoke(*args: str) -> tuple[int, str]:
+        result = CliRunner().invoke(main, list(args))
+        return result.exit_code, result.output
+
+    return invoke
+
+
+@pytest.fixture(scope="session")
+def one_line() -> Callable[..., str]:
+    """``one_line(code, output, *needles) -> the line``: asserts a refusal: exit code 2 and one ``error:`` line
+    (besides warnings and notes), no traceback, holding every needle."""
+
+    def check(code: int, output: str, *needles: str) -> str:
+        assert code == 2, output
+        lines = [line for line in output.splitlines() if line.strip() and not line.startswith(("warning: ", "note: "))]
+        assert len(lines) == 1 and lines[0].startswith("error: ") and "Traceback" not in output, output
+        for needle in needles:
+            assert needle in lines[0], lines[0]
+        return lines[0]
+
+    return check

@@ -8,29 +8,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from click.testing import CliRunner
 
-from coworld.cli import main
 from coworld.config import make_config
 from coworld.data import DatasetWriter
 from coworld.training.checkpoint import save_checkpoint
 from coworld.training.run import prepare_run_dir
 from coworld.training.train import check_job
-
-
-def run(args: list[str]) -> tuple[int, str]:
-    result = CliRunner().invoke(main, args)
-    return result.exit_code, result.output
-
-
-def one_line_error(code: int, output: str, *needles: str) -> None:
-    assert code == 2, output
-    lines = [
-        line for line in output.strip().splitlines() if line.strip() and not line.startswith(("warning: ", "note: "))
-    ]
-    assert len(lines) == 1 and lines[0].startswith("error: "), output
-    for needle in needles:
-        assert needle in lines[0], lines[0]
 
 
 def digest(folder: Path) -> dict[str, str]:
@@ -53,37 +36,39 @@ def train_args(dataset: Path, logdir: Path, *extra: str) -> list[str]:
             "--logdir", str(logdir), "--preset", "tiny", *extra]  # fmt: skip
 
 
-def test_a_folder_with_a_checkpoint_but_no_config_is_refused_and_left_untouched(tmp_path, toy_dataset):
+def test_a_folder_with_a_checkpoint_but_no_config_is_refused_and_left_untouched(tmp_path, toy_dataset, cli, one_line):
     folder = tmp_path / "run"
     folder.mkdir()
     (folder / "checkpoint.pt").write_bytes(b"a CURL checkpoint copied here")
     (folder / "metrics.jsonl").write_text("{}\n")
     before = digest(folder)
-    code, out = run(train_args(toy_dataset, folder, "--algo", "dreamerv2"))
-    one_line_error(code, out, "checkpoint.pt, metrics.jsonl but no config.json", "nothing was changed")
+    code, out = cli(*train_args(toy_dataset, folder, "--algo", "dreamerv2"))
+    one_line(code, out, "checkpoint.pt, metrics.jsonl but no config.json", "nothing was changed")
     assert "resuming" not in out and digest(folder) == before
 
 
 @pytest.mark.parametrize("bad", ["precision=fp8", "coworld.align_on=encoder", "actor_critic.actor_dist=beta"])
-def test_a_value_a_run_would_trip_over_late_is_refused_before_the_run_folder_exists(tmp_path, toy_dataset, bad):
-    code, out = run(train_args(toy_dataset, tmp_path / "run", "--set", bad))
-    one_line_error(code, out, bad.split("=")[0], "out of range")
+def test_a_value_a_run_would_trip_over_late_is_refused_before_the_run_folder_exists(
+    tmp_path, toy_dataset, bad, cli, one_line
+):
+    code, out = cli(*train_args(toy_dataset, tmp_path / "run", "--set", bad))
+    one_line(code, out, bad.split("=")[0], "out of range")
     assert not (tmp_path / "run").exists()  # so the corrected command starts afresh
 
 
-def test_a_refused_resume_says_why_without_first_claiming_to_resume(tmp_path, toy_dataset):
+def test_a_refused_resume_says_why_without_first_claiming_to_resume(tmp_path, toy_dataset, cli, one_line):
     job = check_job(algo="coworld", source="toy_reach", target="toy_reach_shifted", dataset=toy_dataset,
                     preset="tiny", logdir=tmp_path / "run", seed=0, device="cpu", overrides=())  # fmt: skip
     prepare_run_dir(job.logdir, job.config, job.info())
     save_checkpoint(job.logdir / "checkpoint.pt", {"kind": "coworld"})
-    code, out = run(train_args(toy_dataset, tmp_path / "run", "--device", "cpu", "--set", "coworld.k=0.5"))
-    one_line_error(code, out, "other settings", "coworld.k")
+    code, out = cli(*train_args(toy_dataset, tmp_path / "run", "--device", "cpu", "--set", "coworld.k=0.5"))
+    one_line(code, out, "other settings", "coworld.k")
     assert "resuming" not in out
 
 
-def test_the_missing_source_hint_names_the_targets_own_pair():
-    code, out = run(["train", "--target", "cheetah_nopaw"])
-    one_line_error(code, out, "--source cheetah_run")
+def test_the_missing_source_hint_names_the_targets_own_pair(cli, one_line):
+    code, out = cli("train", "--target", "cheetah_nopaw")
+    one_line(code, out, "--source cheetah_run")
 
 
 def test_different_bodies_with_one_action_size_are_warned_about(tmp_path):
@@ -103,14 +88,14 @@ def test_the_paper_preset_on_a_cpu_starts_with_a_warning(tmp_path, toy_dataset):
     assert check_job(preset="tiny", **common).warnings == ()
 
 
-def test_frames_of_another_size_are_refused_with_the_size_the_models_take(tmp_path):
+def test_frames_of_another_size_are_refused_with_the_size_the_models_take(tmp_path, cli, one_line):
     dataset = fake_dataset(tmp_path / "big.h5", "toy_reach_shifted", 2, image_shape=(84, 84, 3))
-    code, out = run(train_args(dataset, tmp_path / "run"))
-    one_line_error(code, out, "84 x 84 x 3 frames", "64 x 64 x 3")
+    code, out = cli(*train_args(dataset, tmp_path / "run"))
+    one_line(code, out, "84 x 84 x 3 frames", "64 x 64 x 3")
     assert not (tmp_path / "run").exists()
 
 
-def test_eval_on_a_task_of_another_action_size_is_refused(tmp_path):
+def test_eval_on_a_task_of_another_action_size_is_refused(tmp_path, cli, one_line):
     from coworld.agents.dreamerv2 import DreamerV2
 
     config = make_config("tiny", ["device=cpu"])
@@ -119,8 +104,8 @@ def test_eval_on_a_task_of_another_action_size_is_refused(tmp_path):
     prepare_run_dir(folder, config, info)
     agent = DreamerV2(config=config, action_size=2)
     save_checkpoint(folder / "checkpoint.pt", {"kind": "dreamerv2-offline", "agent": agent.state_dict()})
-    code, out = run(["eval", "--ckpt", str(folder), "--task", "walker_walk", "--device", "cpu"])
-    one_line_error(code, out, "walker_walk takes 6-d actions", "toy_reach_shifted (2-d)")
+    code, out = cli("eval", "--ckpt", str(folder), "--task", "walker_walk", "--device", "cpu")
+    one_line(code, out, "walker_walk takes 6-d actions", "toy_reach_shifted (2-d)")
 
 
 @pytest.mark.parametrize(
@@ -131,8 +116,8 @@ def test_eval_on_a_task_of_another_action_size_is_refused(tmp_path):
         ["train", "--target", "toy_reach_shifted", "--source", "toy_reach", "--seed", "-1"],
     ],
 )
-def test_negative_counts_and_seeds_are_usage_errors(args):
-    code, out = run(args)
+def test_negative_counts_and_seeds_are_usage_errors(args, cli):
+    code, out = cli(*args)
     assert code == 2 and "Invalid value" in out and "Traceback" not in out
 
 

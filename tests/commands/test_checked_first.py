@@ -7,29 +7,13 @@ from __future__ import annotations
 import json
 
 import pytest
-from click.testing import CliRunner
 
 from coworld.budget import check_memory, estimate
-from coworld.cli import main
 from coworld.config import make_config
 from coworld.errors import ConfigError
 from coworld.training.train import ALGOS
 
 TARGET = "toy_reach_shifted"
-
-
-def cli(*args: str) -> tuple[int, str]:
-    result = CliRunner().invoke(main, list(args))
-    return result.exit_code, result.output
-
-
-def one_line(code: int, output: str, *needles: str) -> str:
-    assert code == 2, output
-    lines = [line for line in output.splitlines() if line.strip() and not line.startswith(("warning: ", "note: "))]
-    assert len(lines) == 1 and lines[0].startswith("error: ") and "Traceback" not in output, output
-    for needle in needles:
-        assert needle in lines[0], lines[0]
-    return lines[0]
 
 
 @pytest.mark.parametrize(
@@ -68,7 +52,7 @@ def test_a_dataset_shorter_than_a_sequence_is_refused_before_pretraining(tmp_pat
     ],
 )
 def test_sizes_that_cannot_be_built_are_refused_before_the_run_folder_exists(tmp_path, toy_dataset, algo, override,
-                                                                             key):  # fmt: skip
+                                                                             key, cli, one_line):  # fmt: skip
     logdir = tmp_path / "run"
     code, out = cli("train", "--algo", algo, "--target", TARGET, "--dataset", str(toy_dataset), "--logdir",
                     str(logdir), "--preset", "tiny", "--device", "cpu", "--set", override)  # fmt: skip
@@ -93,7 +77,7 @@ def test_the_memory_estimate_passes_every_preset_and_refuses_past_the_machine():
         check_memory("dreamerv2", config, available=2**30)
 
 
-def test_actor_min_std_above_max_is_refused(tmp_path, toy_dataset):
+def test_actor_min_std_above_max_is_refused(tmp_path, toy_dataset, cli, one_line):
     code, out = cli("train", "--algo", "dreamerv2", "--target", TARGET, "--dataset", str(toy_dataset), "--logdir",
                     str(tmp_path / "run"), "--preset", "tiny", "--set", "actor_critic.actor_min_std=2")  # fmt: skip
     one_line(code, out, "actor_critic.actor_min_std=2.0", "actor_critic.actor_max_std=1.0")
@@ -111,7 +95,7 @@ def test_drq_bc_on_the_cpu_preset_is_warned_about(tmp_path, toy_dataset):
     assert any("--preset cpu" in w for w in paper.warnings)
 
 
-def test_train_force_starts_a_run_folder_of_other_settings_over(tmp_path, toy_dataset, make_run):
+def test_train_force_starts_a_run_folder_of_other_settings_over(tmp_path, toy_dataset, make_run, cli, one_line):
     run = make_run(tmp_path / "run", "dreamerv2", toy_dataset)
     (run / "notes.txt").write_text("mine")
     args = ["train", "--algo", "dreamerv2", "--target", TARGET, "--dataset", str(toy_dataset), "--logdir", str(run),
@@ -126,7 +110,7 @@ def test_train_force_starts_a_run_folder_of_other_settings_over(tmp_path, toy_da
     assert json.loads((run / "config.json").read_text())["train"]["seq_len"] == 8
 
 
-def test_collects_hint_names_its_own_options(tmp_path):
+def test_collects_hint_names_its_own_options(tmp_path, cli, one_line):
     from coworld.training.run import collector_run_info, prepare_run_dir
 
     out = tmp_path / "d.h5"
@@ -140,7 +124,7 @@ def test_collects_hint_names_its_own_options(tmp_path):
 
 
 @pytest.mark.parametrize("algo", ["dreamerv2-finetune", "dreamerv2-finetune-ewc"])
-def test_a_fine_tuned_dreamerv2_without_a_source_is_refused_in_one_line(tmp_path, toy_dataset, algo):
+def test_a_fine_tuned_dreamerv2_without_a_source_is_refused_in_one_line(tmp_path, toy_dataset, algo, cli, one_line):
     logdir = tmp_path / "run"
     code, out = cli("train", "--algo", algo, "--target", TARGET, "--dataset", str(toy_dataset), "--logdir",
                     str(logdir), "--preset", "tiny", "--device", "cpu")  # fmt: skip
@@ -165,7 +149,7 @@ def test_a_fine_tuned_dreamerv2_without_a_source_is_refused_in_one_line(tmp_path
     ],
 )
 def test_bad_lompo_and_ewc_values_are_refused_before_the_run_folder_exists(tmp_path, toy_dataset, algo, override,
-                                                                           needles):  # fmt: skip
+                                                                           needles, cli, one_line):  # fmt: skip
     logdir = tmp_path / "run"
     code, out = cli("train", "--algo", algo, "--source", "toy_reach", "--target", TARGET, "--dataset",
                     str(toy_dataset), "--logdir", str(logdir), "--preset", "tiny", "--device", "cpu", "--set",

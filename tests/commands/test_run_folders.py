@@ -9,9 +9,7 @@ import json
 from pathlib import Path
 
 import pytest
-from click.testing import CliRunner
 
-from coworld.cli import main
 from coworld.report import write_report
 from coworld.training.checkpoint import save_checkpoint
 from coworld.training.run import prepare_run_dir
@@ -24,20 +22,6 @@ def digest(folder: Path) -> dict[str, str]:
     return {str(p): hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(folder.rglob("*")) if p.is_file()}
 
 
-def cli(*args: str) -> tuple[int, str]:
-    result = CliRunner().invoke(main, list(args))
-    return result.exit_code, result.output
-
-
-def one_line(code: int, output: str, *needles: str) -> str:
-    assert code == 2, output
-    lines = [line for line in output.splitlines() if line.strip() and not line.startswith(("warning: ", "note: "))]
-    assert len(lines) == 1 and lines[0].startswith("error: ") and "Traceback" not in output, output
-    for needle in needles:
-        assert needle in lines[0], lines[0]
-    return lines[0]
-
-
 @pytest.mark.parametrize(
     ("folder_algo", "checkpoint_algo"),
     [
@@ -48,7 +32,9 @@ def one_line(code: int, output: str, *needles: str) -> str:
         ("dreamerv2-finetune-ewc", "dreamerv2-finetune"),
     ],
 )
-def test_eval_refuses_a_checkpoint_of_another_algorithm(tmp_path, toy_dataset, make_run, folder_algo, checkpoint_algo):
+def test_eval_refuses_a_checkpoint_of_another_algorithm(
+    tmp_path, toy_dataset, make_run, folder_algo, checkpoint_algo, cli, one_line
+):
     run = make_run(tmp_path / "run", folder_algo, toy_dataset, checkpoint_of=checkpoint_algo)
     before = digest(run)
     code, out = cli("eval", "--ckpt", str(run), "--episodes", "1", "--device", "cpu")
@@ -65,7 +51,7 @@ def test_eval_refuses_a_checkpoint_of_another_task_as_a_real_process(tmp_path, t
     assert not (run / "eval.json").exists()
 
 
-def test_eval_refuses_a_checkpoint_of_other_settings(tmp_path, toy_dataset, make_run):
+def test_eval_refuses_a_checkpoint_of_other_settings(tmp_path, toy_dataset, make_run, cli, one_line):
     run = make_run(tmp_path / "run", "dreamerv2", toy_dataset)
     state = json.loads((run / "config.json").read_text())
     state["world_model"]["deter"] = 32
@@ -113,7 +99,9 @@ RUN_JSON_ONLY = ("no algo", "an unknown algo")
     [("run.json", damage) for damage in sorted(DAMAGED)]
     + [("config.json", damage) for damage in sorted(DAMAGED) if damage not in RUN_JSON_ONLY],
 )
-def test_a_damaged_run_description_is_one_line_in_every_command(tmp_path, toy_dataset, make_run, file, damage):
+def test_a_damaged_run_description_is_one_line_in_every_command(
+    tmp_path, toy_dataset, make_run, file, damage, cli, one_line
+):
     run = make_run(tmp_path / "run", "dreamerv2", toy_dataset)
     (run / file).write_bytes(DAMAGED[damage])
     before = digest(run)
@@ -146,20 +134,20 @@ def test_a_checkpoint_missing_an_entry_is_refused_before_a_resume_writes_anythin
     assert digest(job.logdir) == before
 
 
-def test_eval_of_a_run_folder_without_a_checkpoint_says_so(tmp_path, toy_dataset, make_run):
+def test_eval_of_a_run_folder_without_a_checkpoint_says_so(tmp_path, toy_dataset, make_run, cli, one_line):
     run = make_run(tmp_path / "run", "dreamerv2", toy_dataset)
     (run / "checkpoint.pt").unlink()
     code, out = cli("eval", "--ckpt", str(run), "--device", "cpu")
     one_line(code, out, "holds no checkpoint.pt yet", "rerun the command that made it")
 
 
-def test_eval_of_a_file_outside_a_run_folder_names_the_file(tmp_path, toy_dataset):
+def test_eval_of_a_file_outside_a_run_folder_names_the_file(tmp_path, toy_dataset, cli, one_line):
     code, out = cli("eval", "--ckpt", str(toy_dataset), "--device", "cpu")
     one_line(code, out, f"{toy_dataset} is not inside a run folder")
 
 
 @pytest.mark.parametrize("algo", ["dreamerv2-penalty", "dreamerv2-finetune", "lompo", "dreamerv2-finetune-ewc"])
-def test_viz_predictions_looks_inside_the_model_based_variants(tmp_path, toy_dataset, make_run, algo):
+def test_viz_predictions_looks_inside_the_model_based_variants(tmp_path, toy_dataset, make_run, algo, cli):
     run = make_run(tmp_path / "run", algo, toy_dataset)
     out = tmp_path / "p.png"
     code, text = cli("viz", "predictions", "--ckpt", str(run), "--out", str(out), "--device", "cpu", "--length", "8")
