@@ -94,8 +94,9 @@ def _markdown(root: Path, results: list[RunResult], figures: list[tuple[str, str
         "",
         f"{count(_run_count(results), 'run')}, {len(finished)} finished (with eval.json). Final return: mean ± std"
         " over seeds of each run's final evaluation; best mean per row in bold; (n=k) where a cell has fewer seeds"
-        " than the others. Aggregate: interquartile mean of normalized scores, 100 (R - random) / (reference - random)"
-        " per target task, over all runs of all tasks, with its 95% stratified-bootstrap confidence interval.",
+        " than the others, and a single seed's return alone with (n=1). Aggregate: interquartile mean of normalized"
+        " scores, 100 (R - random) / (reference - random) per target task, over all runs of all tasks, with its 95%"
+        " stratified-bootstrap confidence interval.",
         "",
     ]
     main = tables.results_table(results)

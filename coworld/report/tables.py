@@ -113,11 +113,17 @@ def _fmt(value: float) -> str:
     return f"{value:.1f}"
 
 
-def _cell(values: Sequence[float], seeds_expected: int) -> str:
+def _mean_std(values: Sequence[float], *, count: bool = False) -> str:
+    """``mean ± std``, with ``(n=k)`` when ``count``; a single value has no spread to show, so it is written alone,
+    always with ``(n=1)``."""
+    if len(values) == 1:
+        return f"{_fmt(float(values[0]))} (n=1)"
     text = f"{_fmt(float(np.mean(values)))} ± {_fmt(float(np.std(values)))}"
-    if len(values) != seeds_expected:
-        text += f" (n={len(values)})"
-    return text
+    return f"{text} (n={len(values)})" if count else text
+
+
+def _cell(values: Sequence[float], seeds_expected: int) -> str:
+    return _mean_std(values, count=len(values) != seeds_expected)
 
 
 def results_table(results: Sequence[RunResult], *, variants: bool = False) -> str:
@@ -216,7 +222,7 @@ def paper_table(results: Sequence[RunResult]) -> str:
             assert number is not None
             lines.append(
                 f"| {_pair_label(results, target)} | {algo} | {runs[0].dataset_quality} | "
-                f"{_fmt(float(np.mean(ours)))} ± {_fmt(float(np.std(ours)))} (n={len(ours)}) | "
+                f"{_mean_std(ours, count=True)} | "
                 f"{number.mean:.0f} ± {number.std:.0f} | {number.where} |"
             )
     return "\n".join(lines)
