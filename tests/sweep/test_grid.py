@@ -92,11 +92,13 @@ def test_toy_centre_table_is_the_toy_cpu_schedule_on_the_centre_pair():
 
 def test_dmc_cpu_table_gives_every_agent_the_same_target_budget():
     spec = named_table("dmc-cpu").check()
-    assert spec.pairs == (("walker_walk", "walker_uphill"),) and spec.preset == "cpu" and spec.eval_episodes == 10
+    assert spec.pairs == (("walker_walk", "walker_uphill"), ("cheetah_run", "cheetah_uphill"))
+    assert spec.preset == "cpu" and spec.eval_episodes == 10
     assert spec.data.policy == "dreamerv2" and spec.data.quality == "medium-replay"
     runs = spec.runs()
-    for algo in ("coworld", "dreamerv2", "dreamerv2-finetune", "drq-bc"):
-        assert sorted(r.seed for r in runs if r.algo == algo) == [0, 1, 2]
+    for target in ("walker_uphill", "cheetah_uphill"):
+        for algo in ("coworld", "dreamerv2", "dreamerv2-finetune", "drq-bc"):
+            assert sorted(r.seed for r in runs if r.algo == algo and r.target == target) == [0, 1, 2]
     config = make_config("cpu", list(spec.overrides))
     cw, train = config.coworld, config.train
     target_updates = cw.iterations * cw.target_updates  # CoWorld's, offline and fine-tuned DreamerV2's
