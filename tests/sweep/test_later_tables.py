@@ -29,6 +29,7 @@ TINY = [
     "coworld.target_updates=2",
     "coworld.source_updates=2",
     "penalty.model_updates=1",
+    "lompo.model_updates=1",
     "curl.updates=2",
     "curl.eval_every=2",
     "curl.checkpoint_every=2",
