@@ -55,11 +55,18 @@ def test_merge_killed_at_random_moments(kills: int, tmp_path: Path, processes: M
     out = helpers.write_dataset(tmp_path / "m.h5", episodes[:2])  # replaced with --force once the merge is whole
     before = helpers.file_state(out)
     args = ["dataset", "merge", str(a), str(b), "--out", str(out), "--force"]
+    # how long a whole merge writes here, so that every kill lands while it is writing, on a fast machine or a busy one
+    trial = processes.start_cli(*args[:-3], "--out", str(tmp_path / "trial.h5"))
+    processes.wait_for(tmp_path.joinpath("trial.h5.merging").exists, trial, what="the trial merge to start")
+    start = time.monotonic()
+    assert trial.wait(timeout=300) == 0
+    writing = time.monotonic() - start
+    tmp_path.joinpath("trial.h5").unlink()
     rng = np.random.default_rng(kills)
     for _ in range(kills):
         proc = processes.start_cli(*args)
         processes.wait_for(tmp_path.joinpath("m.h5.merging").exists, proc, what="the merge to start")
-        time.sleep(float(rng.uniform(0.0, 1.0)))
+        time.sleep(float(rng.uniform(0.0, 0.8 * writing)))
         processes.kill(proc)
         assert helpers.file_state(out) == before
     done = processes.run_cli(*args)
