@@ -54,13 +54,15 @@ def test_merge_killed_at_random_moments(kills: int, tmp_path: Path, processes: M
     b = helpers.write_dataset(tmp_path / "b.h5", episodes[80:], compression="none")
     out = helpers.write_dataset(tmp_path / "m.h5", episodes[:2])  # replaced with --force once the merge is whole
     before = helpers.file_state(out)
-    args = ["dataset", "merge", str(a), str(b), "--out", str(out), "--force"]
+    merge = ["dataset", "merge", str(a), str(b)]
+    args = [*merge, "--out", str(out), "--force"]
     # how long a whole merge writes here, so that every kill lands while it is writing, on a fast machine or a busy one
-    trial = processes.start_cli(*args[:-3], "--out", str(tmp_path / "trial.h5"))
+    trial = processes.start_cli(*merge, "--out", str(tmp_path / "trial.h5"))
     processes.wait_for(tmp_path.joinpath("trial.h5.merging").exists, trial, what="the trial merge to start")
     start = time.monotonic()
-    assert trial.wait(timeout=300) == 0
+    _, err = trial.communicate(timeout=300)  # drains the pipes, which a long output could fill
     writing = time.monotonic() - start
+    assert trial.returncode == 0, err
     tmp_path.joinpath("trial.h5").unlink()
     rng = np.random.default_rng(kills)
     for _ in range(kills):
