@@ -26,8 +26,6 @@ import torch
 from coworld.agents.dreamerv2 import DreamerV2
 from coworld.backends import ReferencePath
 from coworld.config import PRESETS, make_config
-from coworld.losses.dreamer import image_loss, reward_loss
-from coworld.models.world_model import preprocess_image
 
 
 def random_batch(batch: int, length: int, action_size: int, seed: int = 0) -> dict[str, np.ndarray]:
@@ -61,16 +59,7 @@ def variants(agent: DreamerV2) -> dict[str, Callable[[], contextlib.AbstractCont
 
     def loss_without_decoder_phases(batch: dict, generator: torch.Generator | None = None) -> tuple:
         """The CPU path's loss with the reference decoder and image term (its encoder kept)."""
-        wm = agent.world_model
-        batch = path.prepare(batch)
-        post, prior, embed = path.observe(batch, generator=generator)
-        feat = wm.features(post)
-        reward = wm.reward_head(feat)
-        terms = {
-            "image": image_loss(wm.decoder(feat), preprocess_image(batch["image"])),
-            "reward": reward_loss(reward, batch["reward"].float()),
-        }
-        return wm.total_loss(terms, post, prior, embed, feat, reward)
+        return agent.world_model.loss(path.prepare(batch), generator)
 
     return {
         "cpu": contextlib.nullcontext,

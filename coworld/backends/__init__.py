@@ -19,14 +19,14 @@ from __future__ import annotations
 
 import copy
 import sys
-from typing import Any, Protocol
+from typing import Any
 
 import torch
 from torch import Tensor
 
+from coworld.backends.reference import ModelPath, ReferencePath
 from coworld.config import Config
 from coworld.errors import ConfigError
-from coworld.models.rssm import State
 from coworld.models.world_model import WorldModel
 
 __all__ = ["ModelPath", "ReferencePath", "check_against_reference", "select"]
@@ -35,51 +35,6 @@ TOLERANCE = 1e-6
 """The check's bound on ``max |fast - reference|`` over each gradient (and the loss), relative to the reference's
 largest magnitude there. In float64 the two forms differ by summation order, and where the model rounds to float32
 (its logits, the decoder's mean) by a float32 rounding; a different model differs by far more."""
-
-
-class ModelPath(Protocol):
-    """What the agents call to train a world model (``name`` says which path it is)."""
-
-    name: str
-    world_model: WorldModel
-
-    def prepare(self, batch: dict[str, Tensor]) -> dict[str, Tensor]: ...
-
-    def embed(self, batch: dict[str, Tensor]) -> Tensor: ...
-
-    def observe(
-        self, batch: dict[str, Tensor], state: State | None = None, generator: torch.Generator | None = None
-    ) -> tuple[State, State, Tensor]: ...
-
-    def loss(
-        self, batch: dict[str, Tensor], generator: torch.Generator | None = None
-    ) -> tuple[dict[str, Tensor], dict[str, Any]]: ...
-
-
-class ReferencePath:
-    """The reference modules as they are: :meth:`WorldModel.loss`, :meth:`WorldModel.observe`, the encoder."""
-
-    name = "reference"
-
-    def __init__(self, world_model: WorldModel) -> None:
-        self.world_model = world_model
-
-    def prepare(self, batch: dict[str, Tensor]) -> dict[str, Tensor]:
-        """The batch as it is (the reference reads ``image``)."""
-        return batch
-
-    def embed(self, batch: dict[str, Tensor]) -> Tensor:
-        return self.world_model.encode(batch["image"])
-
-    def observe(
-        self, batch: dict[str, Tensor], state: State | None = None, generator: torch.Generator | None = None
-    ) -> tuple[State, State, Tensor]:
-        return self.world_model.observe(batch, state, generator)
-
-    def loss(
-        self, batch: dict[str, Tensor], generator: torch.Generator | None = None
-    ) -> tuple[dict[str, Tensor], dict[str, Any]]:
-        return self.world_model.loss(batch, generator)
 
 
 def select(world_model: WorldModel, config: Config, device: torch.device, autocast: bool) -> ModelPath:
@@ -140,7 +95,7 @@ def _model_key(world_model: WorldModel) -> tuple:
     methods = tuple(
         getattr(type(module), name, None)
         for module in (world_model, world_model.rssm)
-        for name in ("loss", "total_loss", "observe", "obs_step", "img_step", "encode", "features", "_logits")
+        for name in ("loss", "image_nll", "observe", "obs_step", "img_step", "encode", "features", "_logits")
     )
     return repr(world_model), world_model.config, code, methods, world_model_module.preprocess_image
 

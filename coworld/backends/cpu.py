@@ -21,7 +21,6 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from coworld.backends import ReferencePath
 from coworld.backends.cpu_kernels import (
     conv_transpose_stride2,
     half_squared_error,
@@ -29,7 +28,7 @@ from coworld.backends.cpu_kernels import (
     stride2_phases,
     stride2_phases4,
 )
-from coworld.losses.dreamer import discount_loss, reward_loss
+from coworld.backends.reference import ReferencePath
 from coworld.models import world_model as world_model_module
 from coworld.models.networks import ACTIVATIONS, ConvDecoder
 from coworld.models.world_model import WorldModel
@@ -106,22 +105,16 @@ class CpuPath(ReferencePath):
     def loss(
         self, batch: dict[str, Tensor], generator: torch.Generator | None = None
     ) -> tuple[dict[str, Tensor], dict[str, Any]]:
-        """:meth:`WorldModel.loss <coworld.models.world_model.WorldModel.loss>`, the image term as half the squared
-        error between the decoder's and the target's phases (the same sum over pixels)."""
-        wm = self.world_model
-        batch = self.prepare(batch)
-        post, prior, embed = self.observe(batch, generator=generator)
-        feat = wm.features(post)
-        reward = wm.reward_head(feat)
+        """:meth:`WorldModel.loss <coworld.models.world_model.WorldModel.loss>` itself, its image term
+        (:meth:`image_term`) in the phase form."""
+        return self.world_model.loss(self.prepare(batch), generator, image_term=self.image_term)
+
+    def image_term(self, feat: Tensor, batch: dict[str, Tensor]) -> Tensor:
+        """:meth:`WorldModel.image_nll <coworld.models.world_model.WorldModel.image_nll>` as half the squared error
+        between the decoder's phases and the target's (the same sum over pixels), ``(B, T)``."""
         # pred - (scale t + shift) = (pred - shift) - scale t: the shift goes into the last layer's bias
-        mean = decode_phases(wm.decoder, feat, self.phase_levels, offset=-self.shift)
-        terms: dict[str, Tensor] = {
-            "image": half_squared_error(mean.float(), batch["target"].movedim(-1, -3), self.scale, 0.0),
-            "reward": reward_loss(reward, batch["reward"].float()),
-        }
-        if wm.discount_head is not None:
-            terms["discount"] = discount_loss(wm.discount_head(feat), 1.0 - batch["is_terminal"].float())
-        return wm.total_loss(terms, post, prior, embed, feat, reward)
+        mean = decode_phases(self.world_model.decoder, feat, self.phase_levels, offset=-self.shift)
+        return half_squared_error(mean.float(), batch["target"].movedim(-1, -3), self.scale, 0.0)
 
 
 def _folds_linear(decoder: ConvDecoder, rows: int) -> bool:

@@ -10,16 +10,32 @@ from __future__ import annotations
 
 import os
 import sys
-from typing import TYPE_CHECKING
+from pathlib import Path
+from typing import Any, Protocol
 
 import numpy as np
 
 from coworld.errors import ConfigError, DatasetError
 
-if TYPE_CHECKING:
-    from coworld.data.reader import Dataset
-
 SAMPLER_MODES = ("auto", "ram", "stream")
+
+
+class StepSource(Protocol):
+    """What the sampler reads of a dataset (:class:`coworld.data.reader.Dataset` is one)."""
+
+    path: Path
+    num_frames: int
+    lengths: np.ndarray
+    step_starts: np.ndarray
+    image_shape: tuple[int, int, int]
+
+    def fits_in_ram(self) -> bool: ...
+
+    def step_arrays(self) -> Any: ...
+
+    def load_frames(self) -> np.ndarray: ...
+
+    def read_steps(self, start: int, out: np.ndarray) -> None: ...
 
 
 class SequenceSampler:
@@ -41,7 +57,7 @@ class SequenceSampler:
         mode: "ram", "stream" or "auto" (ram when the frames fit in half the available memory).
     """
 
-    def __init__(self, dataset: Dataset, batch_size: int, seq_len: int, seed: int = 0, mode: str = "auto") -> None:
+    def __init__(self, dataset: StepSource, batch_size: int, seq_len: int, seed: int = 0, mode: str = "auto") -> None:
         if mode not in SAMPLER_MODES:
             raise ConfigError(f"unknown sampler mode {mode!r}; choose one of: {', '.join(SAMPLER_MODES)}")
         if batch_size < 1 or seq_len < 1:

@@ -37,7 +37,7 @@ from coworld.envs.render import FrameRenderer, ensure_gl_backend
 if TYPE_CHECKING:
     from dm_control.mujoco import Physics
 
-    from coworld.envs.registry import EnvSettings, TaskSpec
+    from coworld.envs.spec import EnvSettings, TaskSpec
 
 SLOPE_DEGREES = 15.0
 """Incline of the paper's uphill / downhill tasks."""

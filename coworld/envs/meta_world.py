@@ -27,7 +27,7 @@ from coworld.envs.render import FrameRenderer, ensure_gl_backend
 if TYPE_CHECKING:
     from metaworld.sawyer_xyz_env import SawyerXYZEnv
 
-    from coworld.envs.registry import EnvSettings, TaskSpec
+    from coworld.envs.spec import EnvSettings, TaskSpec
 
 CAMERA = "corner2"
 CAMERA_POS = (0.75, 0.075, 0.7)

@@ -47,7 +47,7 @@ from coworld.envs.render import FrameRenderer, ensure_gl_backend
 if TYPE_CHECKING:
     from dm_control.mujoco import Physics
 
-    from coworld.envs.registry import EnvSettings, TaskSpec
+    from coworld.envs.spec import EnvSettings, TaskSpec
 
 ASSETS = Path(__file__).parent / "assets" / "robodesk"
 """RoboDesk's scene: ``desk.xml`` and the files it includes."""

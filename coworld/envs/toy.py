@@ -33,7 +33,7 @@ import gymnasium as gym
 import numpy as np
 
 if TYPE_CHECKING:
-    from coworld.envs.registry import EnvSettings, TaskSpec
+    from coworld.envs.spec import EnvSettings, TaskSpec
 
 SPEED = 0.1
 """Distance moved per step per unit of action."""

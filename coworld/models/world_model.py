@@ -12,6 +12,7 @@ The reward and discount heads predict ``reward[t]`` and ``1 - is_terminal[t]`` f
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 import torch
@@ -23,7 +24,10 @@ from coworld.models.distributions import TWOHOT_BINS, Bernoulli, TwoHotSymlog, U
 from coworld.models.networks import MLP, ConvDecoder, ConvEncoder, check_image_shape
 from coworld.models.rssm import RSSM, State
 
-__all__ = ["DiscountHead", "ScalarHead", "WorldModel", "preprocess_image"]
+__all__ = ["DiscountHead", "ImageTerm", "ScalarHead", "WorldModel", "preprocess_image"]
+
+ImageTerm = Callable[[Tensor, dict[str, Tensor]], Tensor]
+"""``(feat (B, T, F), batch) -> (B, T)``: the image term of :meth:`WorldModel.loss`, computed another way."""
 
 
 def preprocess_image(image: Tensor, dtype: torch.dtype = torch.float32) -> Tensor:
@@ -134,7 +138,7 @@ class WorldModel(nn.Module):
         return post, prior, embed
 
     def loss(
-        self, batch: dict[str, Tensor], generator: torch.Generator | None = None
+        self, batch: dict[str, Tensor], generator: torch.Generator | None = None, image_term: ImageTerm | None = None
     ) -> tuple[dict[str, Tensor], dict[str, Any]]:
         """DreamerV2's world-model loss on a batch.
 
@@ -146,32 +150,22 @@ class WorldModel(nn.Module):
 
             loss = image_scale * mean(image) + reward_scale * mean(reward)
                    + discount_scale * mean(discount) + kl_scale * kl_loss
+
+        ``image_term(feat, batch) -> (B, T)`` computes the image term in place of :meth:`image_nll` (a fast path
+        computes the same number in another form, :mod:`coworld.backends`); every other term is this method's.
         """
+        cfg = self.config
         post, prior, embed = self.observe(batch, generator=generator)
         feat = self.features(post)
-        image = UnitGaussian(self.decoder(feat).float(), event_dims=3)
+        batch_size, length = feat.shape[:2]
         reward = self.reward_head(feat)
         terms: dict[str, Tensor] = {
-            "image": image_loss(image, preprocess_image(batch["image"], self.dtype)),
+            "image": (self.image_nll if image_term is None else image_term)(feat, batch),
             "reward": reward_loss(reward, batch["reward"].float()),
         }
         if self.discount_head is not None:
             continuation = 1.0 - batch["is_terminal"].float()
             terms["discount"] = discount_loss(self.discount_head(feat), continuation)
-        return self.total_loss(terms, post, prior, embed, feat, reward)
-
-    def total_loss(
-        self,
-        terms: dict[str, Tensor],
-        post: State,
-        prior: State,
-        embed: Tensor,
-        feat: Tensor,
-        reward: UnitGaussian | TwoHotSymlog,
-    ) -> tuple[dict[str, Tensor], dict[str, Any]]:
-        """:meth:`loss`'s KL term and weighted sum, given its likelihood ``terms`` and what it computed them from."""
-        cfg = self.config
-        batch_size, length = post["deter"].shape[:2]
         kl_loss, terms["kl"] = kl_balanced_loss(
             post["logits"], prior["logits"], cfg.kl_balance, cfg.free_nats, normalised=True
         )
@@ -184,3 +178,9 @@ class WorldModel(nn.Module):
         aux = {"post": post, "prior": prior, "embed": embed, "feat": feat, "kl_loss": kl_loss, "loss": loss}
         aux["reward_head"] = reward
         return terms, aux
+
+    def image_nll(self, feat: Tensor, batch: dict[str, Tensor]) -> Tensor:
+        """The image term of :meth:`loss`: the decoder's unit Gaussian over the frames of ``batch`` at features
+        ``feat (B, T, F)``, its negative log-likelihood ``(B, T)``."""
+        image = UnitGaussian(self.decoder(feat).float(), event_dims=3)
+        return image_loss(image, preprocess_image(batch["image"], self.dtype))
