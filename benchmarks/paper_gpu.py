@@ -50,8 +50,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from train_throughput import random_batch  # noqa: E402
 
 from coworld.config import PRESETS, Config, make_config  # noqa: E402
+from coworld.devices import resolve_device  # noqa: E402
 from coworld.storage import write_text_atomically  # noqa: E402
-from coworld.training.run import resolve_device  # noqa: E402
 
 MODES = ("bf16-eager", "fp32-eager", "fp32-phases", "bf16-compile", "fp32-compile", "fp32-graphs")
 UPDATES = ("dreamerv2", "coworld target", "coworld source")

@@ -69,9 +69,9 @@ from torch.utils.flop_counter import FlopCounterMode
 
 from coworld.agents.dreamerv2 import DreamerV2
 from coworld.config import PRESETS, Config, make_config
+from coworld.devices import resolve_device
 from coworld.models.actor_critic import flatten_states
 from coworld.models.networks import frozen_parameters
-from coworld.training.run import resolve_device
 
 
 @dataclass(frozen=True)

@@ -54,8 +54,8 @@ from coworld.training.checkpoint import CHECKPOINT_NAME, load_checkpoint, rng_st
 from coworld.training.evaluate import evaluate
 from coworld.training.logger import Logger, Rate
 from coworld.training.online import OnlineTrainer, make_source_trainer, source_replay_writer
+from coworld.training.openloop import log_open_loop
 from coworld.training.train import parse_sources
-from coworld.viz.training import log_open_loop
 
 CHECKPOINT_KIND = "coworld"
 COWORLD_CHECKPOINT_KEYS = ("agent", "source", "source_updates", "progress", "rng")

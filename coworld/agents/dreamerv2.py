@@ -22,13 +22,13 @@ from torch._inductor import list_mode_options
 
 from coworld import backends
 from coworld.config import Config
+from coworld.devices import resolve_device
 from coworld.errors import ConfigError
 from coworld.models.actor_critic import ActorCritic, ValueRegulariser, flatten_states
 from coworld.models.distributions import exponential_noise
 from coworld.models.networks import frozen_parameters
 from coworld.models.rssm import State
 from coworld.models.world_model import WorldModel
-from coworld.training.run import resolve_device
 
 __all__ = [
     "DreamerV2",
@@ -36,7 +36,6 @@ __all__ = [
     "ImaginedReward",
     "PolicyCopy",
     "PolicyState",
-    "resolve_device",
     "resolve_precision",
 ]
 

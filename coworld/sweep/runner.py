@@ -374,7 +374,7 @@ def check_execution(execution: Execution) -> None:
     if execution.jobs < 1 or execution.threads < 1:
         raise CoworldError("--jobs and --threads must be at least 1")
     if execution.ray is None and execution.device is not None:  # on Ray, the workers' devices count, not this one's
-        from coworld.training.run import resolve_device
+        from coworld.devices import resolve_device
 
         resolve_device(execution.device)
 

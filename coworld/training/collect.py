@@ -34,11 +34,12 @@ from coworld import envs, interrupt
 from coworld.config import make_config
 from coworld.data import DatasetWriter
 from coworld.data.collect import dataset_fields
+from coworld.devices import resolve_device
 from coworld.errors import CoworldError, DatasetError
 from coworld.storage import check_writable
 from coworld.training.logger import Logger
 from coworld.training.online import OnlineTrainer
-from coworld.training.run import collector_run_info, prepare_run_dir, preset_warnings, resolve_device, seed_everything
+from coworld.training.run import collector_run_info, prepare_run_dir, preset_warnings, seed_everything
 from coworld.training.train import check_backend
 
 TRAINED_QUALITIES = ("medium-replay", "medium-expert", "medium", "expert")

@@ -286,9 +286,9 @@ def load_trained_agent(path: Path, device: str = "auto") -> tuple[Any, dict[str,
     one CoworldError line.
     """
     from coworld.agents.factory import make_agent
+    from coworld.devices import resolve_device
     from coworld.training.checkpoint import load_agent_state
     from coworld.training.loading import load_run_checkpoint, open_run
-    from coworld.training.run import resolve_device
 
     _, ckpt, config, info = open_run(path)
     state = load_run_checkpoint(ckpt, config, info)

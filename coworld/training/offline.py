@@ -31,7 +31,7 @@ from coworld.training.checkpoint import (
 )
 from coworld.training.evaluate import evaluate
 from coworld.training.logger import Logger, Rate
-from coworld.viz.training import log_open_loop
+from coworld.training.openloop import log_open_loop
 
 CHECKPOINT_KEYS = ("agent", "updates", "last_eval", "rng")
 """What an offline run's checkpoint holds beyond its kind (:meth:`OfflineTrainer.save`)."""

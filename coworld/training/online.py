@@ -56,8 +56,8 @@ from coworld.training.checkpoint import (
 )
 from coworld.training.evaluate import evaluate
 from coworld.training.logger import Logger, Rate
+from coworld.training.openloop import log_open_loop
 from coworld.training.replay import Replay
-from coworld.viz.training import log_open_loop
 
 CHECKPOINT_KIND = "dreamerv2-online"
 CHECKPOINT_KEYS = ("agent", "updates", "last_eval", "last_eval_step", "rng")

@@ -12,7 +12,7 @@ from collections.abc import Iterator, Mapping
 
 import numpy as np
 
-KEYS = ("image", "action", "reward", "is_first", "is_last", "is_terminal")
+from coworld.data.schema import STEP_KEYS as KEYS
 
 
 class Replay:

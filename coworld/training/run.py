@@ -18,6 +18,7 @@ import numpy as np
 import torch
 
 from coworld.config import Config, first_difference, from_dict, to_dict, to_json
+from coworld.devices import resolve_device
 from coworld.errors import ConfigError, CoworldError
 from coworld.storage import write_text_atomically
 
@@ -27,22 +28,6 @@ def seed_everything(seed: int) -> None:
     random.seed(seed)
     np.random.seed(seed % 2**32)
     torch.manual_seed(seed)
-
-
-def resolve_device(name: str | torch.device) -> torch.device:
-    """'auto' -> CUDA when available, else CPU; 'cpu' / 'cuda' / 'cuda:1' as given (CUDA must be available)."""
-    if isinstance(name, torch.device):
-        device = name
-    elif name == "auto":
-        device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    else:
-        try:
-            device = torch.device(name)
-        except RuntimeError:
-            raise ConfigError(f"unknown device {name!r}; use 'auto', 'cpu' or 'cuda'") from None
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise ConfigError("device 'cuda' requested but torch sees no CUDA GPU; use --device cpu (or auto)")
-    return device
 
 
 def preset_warnings(preset: str, device: str, algo: str = "dreamerv2") -> list[str]:

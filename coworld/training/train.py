@@ -262,7 +262,7 @@ def check_backend(config: Config, action_size: int) -> None:
     ``cpu`` raises ConfigError with one line)."""
     from coworld import backends
     from coworld.agents.dreamerv2 import resolve_precision
-    from coworld.training.run import resolve_device
+    from coworld.devices import resolve_device
 
     device = resolve_device(config.device)
     autocast = resolve_precision(config.precision, device) is not None
@@ -302,7 +302,8 @@ def check_dataset(path: Path, task: str, action_size: int, needed: tuple[int, st
 
 def run_job(job: TrainJob, *, progress: bool = True) -> dict[str, Any]:
     """Train as ``job`` says (resuming its run folder if it holds this run); returns a summary."""
-    from coworld.training.run import clear_run_dir, prepare_run_dir, resolve_device, seed_everything
+    from coworld.devices import resolve_device
+    from coworld.training.run import clear_run_dir, prepare_run_dir, seed_everything
 
     device = resolve_device(job.config.device)
     if job.start_over:

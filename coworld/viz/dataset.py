@@ -7,8 +7,8 @@ from typing import Any
 
 import numpy as np
 
-from coworld.viz.media import labelled_grid, put_text, stack_frames, upscale
-from coworld.viz.runs import evenly_spaced
+from coworld.data.windows import evenly_spaced
+from coworld.pictures import labelled_grid, put_text, stack_frames, upscale
 
 __all__ = ["dataset_grid", "dataset_video", "returns_histogram"]
 

@@ -24,11 +24,11 @@ import numpy as np
 import torch
 
 from coworld import envs
+from coworld.data.windows import EpisodeSource, EpisodeStore, count_episodes, episode_windows, get_episodes
 from coworld.errors import CoworldError
+from coworld.training.openloop import batch_tensors
 from coworld.training.source_choice import trained_source
 from coworld.viz.media import require_extra
-from coworld.viz.predictions import batch_tensors
-from coworld.viz.runs import EpisodeSource, EpisodeStore, count_episodes, episode_windows, get_episodes
 
 __all__ = [
     "LatentGroup",

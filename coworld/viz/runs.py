@@ -10,12 +10,14 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any, Protocol, runtime_checkable
+from typing import Any
 
 import numpy as np
 
 from coworld import envs
 from coworld.config import Config
+from coworld.data.schema import STEP_KEYS
+from coworld.data.windows import episode_windows, evenly_spaced
 from coworld.errors import CoworldError
 
 WORLD_MODEL_ALGOS = (
@@ -26,31 +28,6 @@ WORLD_MODEL_ALGOS = (
     "lompo",
     "dreamerv2-finetune-ewc",
 )
-_KEYS = ("image", "action", "reward", "is_first", "is_last", "is_terminal")
-
-
-@runtime_checkable
-class EpisodeStore(Protocol):
-    """What an open :class:`~coworld.data.reader.Dataset` offers: its episode count and one episode at a time."""
-
-    @property
-    def num_episodes(self) -> int: ...
-
-    def episode(self, i: int) -> dict[str, np.ndarray]: ...
-
-
-EpisodeSource = EpisodeStore | Sequence[Mapping[str, np.ndarray]]
-"""Episodes in the step convention: an open dataset, or a list of episodes (a replay's, fresh rollouts)."""
-
-
-def count_episodes(source: EpisodeSource) -> int:
-    return source.num_episodes if isinstance(source, EpisodeStore) else len(source)
-
-
-def get_episodes(source: EpisodeSource, indices: Sequence[int]) -> list[Mapping[str, np.ndarray]]:
-    """Episodes ``indices`` of ``source`` (an index repeated is read once)."""
-    read = {i: source.episode(i) if isinstance(source, EpisodeStore) else source[i] for i in set(indices)}
-    return [read[i] for i in indices]
 
 
 @dataclass
@@ -84,9 +61,9 @@ def load_run_models(path: str | Path, device: str = "auto") -> RunModels:
     """Rebuild the DreamerV2 agents of a run folder (or of its checkpoint file), checked to be what the folder says
     (:mod:`coworld.training.loading`); problems raise one line."""
     from coworld.agents.factory import make_agent
+    from coworld.devices import resolve_device
     from coworld.training.checkpoint import load_agent_state
     from coworld.training.loading import load_run_checkpoint, open_run
-    from coworld.training.run import resolve_device
 
     run_dir, ckpt, config, info = open_run(path)
     algo = info["algo"]
@@ -160,31 +137,6 @@ def prediction_windows(
     return episode_windows(episodes, min(length, shortest - start), [start] * len(episodes))
 
 
-def evenly_spaced(total: int, n: int) -> list[int]:
-    """``min(n, total)`` distinct indices spread evenly over ``range(total)``, first and last included."""
-    if total <= 0 or n <= 0:
-        return []
-    return sorted({int(round(i)) for i in np.linspace(0, total - 1, min(n, total))})
-
-
-def episode_windows(
-    episodes: Sequence[Mapping[str, np.ndarray]], length: int, starts: Sequence[int] | None = None
-) -> dict[str, np.ndarray]:
-    """One window of ``length`` steps from each episode (step convention), stacked into a batch ``(B, L, ...)``.
-
-    ``starts`` (default 0) is clipped so each window fits inside its episode; ``length`` is cut to the shortest
-    episode. Each window after the first step has ``is_first`` False, so a window that starts mid-episode is
-    observed from a zero state (as training windows are).
-    """
-    length = min([length, *(len(ep["reward"]) for ep in episodes)])
-    starts = [0] * len(episodes) if starts is None else list(starts)
-    windows = []
-    for episode, start in zip(episodes, starts, strict=True):
-        start = int(np.clip(start, 0, len(episode["reward"]) - length))
-        windows.append({key: np.asarray(episode[key][start : start + length]) for key in _KEYS})
-    return {key: np.stack([w[key] for w in windows]) for key in _KEYS}
-
-
 def rollout_episodes(agent: Any, task: str, episodes: int, seed: int = 0, mode: str = "eval") -> list[dict]:
     """Fresh episodes in ``task`` in the step convention: ``agent``'s policy in ``mode`` ('eval' or 'train'), or
     uniform random actions for ``mode='random'`` (``agent`` may then be None)."""
@@ -207,7 +159,7 @@ def rollout_episodes(agent: Any, task: str, episodes: int, seed: int = 0, mode: 
                 obs, reward, terminated, truncated, _ = env.step(action)
                 done = bool(terminated or truncated)
                 steps.append(_step(obs, action, float(reward), last=done, terminal=bool(terminated)))
-            out.append({key: np.stack([s[key] for s in steps]) for key in _KEYS})
+            out.append({key: np.stack([s[key] for s in steps]) for key in STEP_KEYS})
     finally:
         env.close()
     return out

@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 import torch
 
-from coworld.agents.dreamerv2 import DreamerV2, resolve_device, resolve_precision
+from coworld.agents.dreamerv2 import DreamerV2, resolve_precision
 from coworld.config import Config, make_config
+from coworld.devices import resolve_device
 from coworld.errors import ConfigError
 
 ACTION_SIZE = 2

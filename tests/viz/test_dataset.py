@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 
 from coworld.data import open_dataset
+from coworld.data.windows import evenly_spaced
 from coworld.viz.dataset import dataset_grid, dataset_video, returns_histogram
-from coworld.viz.runs import evenly_spaced
 
 from .conftest import contains
 

@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from coworld.errors import CoworldError
-from coworld.viz.media import labelled_grid, output_kind, stack_frames, write_image, write_video
+from coworld.pictures import labelled_grid, stack_frames
+from coworld.viz.media import output_kind, write_image, write_video
 
 
 def solid(colour: tuple[int, int, int], h: int = 8, w: int = 6) -> np.ndarray:

@@ -96,7 +96,8 @@ def test_context_must_leave_steps_to_imagine():
 
 def toy_batch() -> dict[str, np.ndarray]:
     from coworld import envs
-    from coworld.viz.runs import episode_windows, rollout_episodes
+    from coworld.data.windows import episode_windows
+    from coworld.viz.runs import rollout_episodes
 
     episodes = rollout_episodes(None, "toy_reach_shifted", 2, seed=3, mode="random")
     assert envs.task_spec("toy_reach_shifted").action_size == episodes[0]["action"].shape[-1]

@@ -8,8 +8,8 @@ import torch
 from tensorboard.backend.event_processing.event_accumulator import IMAGES, EventAccumulator
 
 from coworld.training.logger import Logger, read_metrics
+from coworld.training.openloop import LENGTH, SEQUENCES, log_open_loop, world_models_of
 from coworld.viz.runs import rollout_episodes
-from coworld.viz.training import LENGTH, SEQUENCES, log_open_loop, world_models_of
 
 from .conftest import SOURCE, TARGET, tiny_agent
 
@@ -71,7 +71,7 @@ def test_strip_from_replay_episodes_leaves_the_random_state_alone(episodes):
 
 
 def test_strip_from_a_sampler_factory_uses_its_first_batch(episodes):
-    from coworld.viz.runs import episode_windows
+    from coworld.data.windows import episode_windows
 
     seeds = []
 
