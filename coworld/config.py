@@ -85,6 +85,12 @@ def _number(value: float | None) -> str:
     return str(int(value)) if float(value).is_integer() else f"{value:g}"
 
 
+ACTIVATIONS = ("elu", "silu", "relu", "gelu", "tanh")
+"""Hidden activations, by the names every network's config takes them (DreamerV2: elu; DreamerV3: silu)."""
+NORMS = ("none", "layer")
+"""Normalisations after a hidden layer, by the names every network's config takes them: none (DreamerV2) or
+LayerNorm (DreamerV3)."""
+
 POSITIVE = Range(0, low_open=True)
 NON_NEGATIVE = Range(0)
 AT_LEAST_1 = Range(1)
@@ -103,9 +109,9 @@ class WorldModelConfig:
     decoder_kernels: Annotated[tuple[int, ...], Each(Range(2, 16))] = (5, 5, 6, 6)
     """Kernel of each stride-2 transposed decoder conv from 1 x 1, one layer each; they must end at 64 x 64
     (DreamerV2: 5, 5, 6, 6)."""
-    act: Annotated[str, OneOf(("elu", "silu", "relu", "gelu", "tanh"))] = "elu"
+    act: Annotated[str, OneOf(ACTIVATIONS)] = "elu"
     """Hidden activation of the conv encoder and decoder and of the RSSM's MLPs (DreamerV2: elu; DreamerV3: silu)."""
-    norm: Annotated[str, OneOf(("none", "layer"))] = "none"
+    norm: Annotated[str, OneOf(NORMS)] = "none"
     """Normalisation after each hidden layer of the conv stacks (over channels) and the RSSM's MLPs: 'none'
     (DreamerV2) or 'layer' (DreamerV3's LayerNorm)."""
     gru_bias: bool = True
@@ -124,10 +130,11 @@ class WorldModelConfig:
     """Units per layer of the reward and discount heads."""
     mlp_layers: Annotated[int, NON_NEGATIVE] = 4
     """Layers of the reward and discount heads."""
-    mlp_norm: bool = False
-    """LayerNorm after each hidden layer of the reward and discount heads (DreamerV3; DreamerV2: none)."""
-    mlp_act: Annotated[str, OneOf(("elu", "silu"))] = "elu"
-    """Hidden activation of the reward and discount heads: 'elu' (DreamerV2) or 'silu' (DreamerV3)."""
+    mlp_norm: Annotated[str, OneOf(NORMS)] = "none"
+    """Normalisation after each hidden layer of the reward and discount heads: 'none' (DreamerV2) or 'layer'
+    (DreamerV3)."""
+    mlp_act: Annotated[str, OneOf(ACTIVATIONS)] = "elu"
+    """Hidden activation of the reward and discount heads (DreamerV2: elu; DreamerV3: silu)."""
     kl_scale: Annotated[float, NON_NEGATIVE] = 1.0
     """beta1 in Eq. 3: weight of KL[posterior || prior]."""
     kl_balance: Annotated[float, UNIT] = 0.8
@@ -171,12 +178,12 @@ class ActorCriticConfig:
     """Units per MLP layer of actor and critic."""
     layers: Annotated[int, NON_NEGATIVE] = 4
     """MLP layers of actor and critic."""
-    mlp_norm: bool = False
-    """LayerNorm after each hidden layer of actor and critic (DreamerV3; DreamerV2's DMC config: none). It takes out
-    what a hidden layer's output has in common over all states, so the output layer learns from what tells states
-    apart rather than only moving its bias."""
-    mlp_act: Annotated[str, OneOf(("elu", "silu"))] = "elu"
-    """Hidden activation of actor and critic: 'elu' (DreamerV2) or 'silu' (DreamerV3)."""
+    mlp_norm: Annotated[str, OneOf(NORMS)] = "none"
+    """Normalisation after each hidden layer of actor and critic: 'none' (DreamerV2's DMC config) or 'layer'
+    (DreamerV3's LayerNorm). A norm takes out what a hidden layer's output has in common over all states, so the
+    output layer learns from what tells states apart rather than only moving its bias."""
+    mlp_act: Annotated[str, OneOf(ACTIVATIONS)] = "elu"
+    """Hidden activation of actor and critic (DreamerV2: elu; DreamerV3: silu)."""
     horizon: Annotated[int, Range(2)] = 15
     """Imagination horizon H (Table 3)."""
     discount: Annotated[float, Range(0, 1, low_open=True)] = 0.995
@@ -323,7 +330,7 @@ class CoWorldConfig:
     """Iterations between evaluations of the target agent in the target environment."""
     select_batches: Annotated[int, Range(1, 10_000)] = 8
     """Several sources (``--source A,B``): target-dataset batches (``train.batch_size`` x ``train.seq_len``) on
-    which each candidate's distance to the target is measured (:mod:`coworld.agents.choice`; the later paper gives
+    which each candidate's distance to the target is measured (:mod:`coworld.training.choice`; the later paper gives
     no number)."""
 
 
@@ -590,11 +597,11 @@ PRESETS: dict[str, dict[str, Any]] = {
         "actor_critic.slow_target_fraction": 0.02,
         "actor_critic.critic_dist": "twohot",
         "actor_critic.zero_init_critic": True,
-        "actor_critic.mlp_norm": True,
+        "actor_critic.mlp_norm": "layer",
         "actor_critic.mlp_act": "silu",
         "world_model.reward_dist": "twohot",
         "world_model.zero_init_reward": True,
-        "world_model.mlp_norm": True,
+        "world_model.mlp_norm": "layer",
         "world_model.mlp_act": "silu",
         "world_model.unimix": 0.01,
         "train.batch_size": 8,
@@ -873,6 +880,8 @@ def to_json(config: Config) -> str:
 LEGACY_DEFAULTS: dict[str, Any] = {"world_model.gru_bias": False, "world_model.gru_eps": 1e-5}
 """What a saved config without these keys (written before they existed) computed: its GRU had no gate bias and
 LayerNorm's epsilon 1e-5. Keys added later with a default that computes what the older code did are not listed."""
+LEGACY_NORM_KEYS = ("world_model.mlp_norm", "actor_critic.mlp_norm")
+"""Norms a config saved before they took norm names held as true / false (LayerNorm or none)."""
 
 
 def from_dict(data: Mapping[str, Any]) -> Config:
@@ -889,6 +898,9 @@ def from_dict(data: Mapping[str, Any]) -> Config:
     walk(data, "")
     for key, value in LEGACY_DEFAULTS.items():
         flat.setdefault(key, value)
+    for key in LEGACY_NORM_KEYS:
+        if isinstance(flat.get(key), bool):
+            flat[key] = "layer" if flat[key] else "none"
     config = apply_overrides(Config(), flat)
     validate(config)
     return config

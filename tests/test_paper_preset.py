@@ -73,9 +73,9 @@ DREAMERV2 = {
     "world_model.gru_bias": True,
     "world_model.gru_eps": 1e-3,
     # the networks: ELU MLPs without LayerNorm, CNN depth 48, 400-unit 4-layer heads, actor and critic
-    "world_model.mlp_norm": False,
+    "world_model.mlp_norm": "none",
     "world_model.mlp_act": "elu",
-    "actor_critic.mlp_norm": False,
+    "actor_critic.mlp_norm": "none",
     "actor_critic.mlp_act": "elu",
     "world_model.cnn_depth": 48,
     "world_model.hidden": 600,

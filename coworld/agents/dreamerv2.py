@@ -23,9 +23,9 @@ from torch._inductor import list_mode_options
 from coworld import backends
 from coworld.config import Config
 from coworld.devices import resolve_device
+from coworld.distributions import exponential_noise
 from coworld.errors import ConfigError
-from coworld.models.actor_critic import ActorCritic, ValueRegulariser, flatten_states
-from coworld.models.distributions import exponential_noise
+from coworld.models.actor_critic import ActorCritic, CriticObjective, flatten_states
 from coworld.models.networks import frozen_parameters
 from coworld.models.rssm import State
 from coworld.models.world_model import WorldModel
@@ -247,7 +247,7 @@ class DreamerV2:
     def train_actor_critic(
         self,
         post: State,
-        value_regulariser: ValueRegulariser | None = None,
+        critic_objective: CriticObjective | None = None,
         *,
         is_terminal: Tensor | np.ndarray | None = None,
         imagined_reward: ImaginedReward | None = None,
@@ -255,9 +255,9 @@ class DreamerV2:
     ) -> dict[str, float]:
         """One actor and one critic step on trajectories imagined from every posterior state in ``post``.
 
-        ``post``: states with batch ``(B, T)`` (from :meth:`train_world_model`). ``value_regulariser``: extra
-        critic loss, see :meth:`ActorCritic.losses`; give it parameters that need no gradient (or wrap its
-        network in :func:`coworld.models.networks.frozen_parameters`). ``is_terminal (B, T)``: true
+        ``post``: states with batch ``(B, T)`` (from :meth:`train_world_model`). ``critic_objective``: the critic's
+        loss in place of DreamerV2's, see :meth:`ActorCritic.losses`; give it parameters that need no gradient (or
+        wrap its network in :func:`coworld.models.networks.frozen_parameters`). ``is_terminal (B, T)``: true
         continuation of the start states. ``imagined_reward``: replaces the reward head's reward of the imagined
         states (see :data:`ImaginedReward`). ``extra_loss() -> {name: weighted scalar loss}``: terms added to the
         actor's and critic's loss and logged under their names (EWC's pull toward the source weights). The slow
@@ -271,7 +271,7 @@ class DreamerV2:
             traj = ac.imagine(self.world_model, start, is_terminal=terminal)
             if imagined_reward is not None:
                 traj["reward"] = imagined_reward(traj)
-            terms, metrics = ac.losses(self.world_model, traj, value_regulariser)
+            terms, metrics = ac.losses(self.world_model, traj, critic_objective)
             extras = extra_loss() if extra_loss is not None else {}
         loss = terms["actor"] + terms["critic"]
         for term in extras.values():

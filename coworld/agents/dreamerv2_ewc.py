@@ -1,9 +1,10 @@
 """DreamerV2 fine-tuned from the source with elastic weight consolidation (Kirkpatrick et al., 2017): the later
 CoWorld paper's "DV2 Finetune-EWC" baseline.
 
-The run is ``dreamerv2-finetune``'s (:mod:`coworld.agents.dreamerv2_finetune`): the agent learns online in the
+The run is ``dreamerv2-finetune``'s (:mod:`coworld.training.finetune`): the agent learns online in the
 source for ``coworld.pretrain_steps`` environment steps, then offline on the target dataset for
-``coworld.iterations`` x ``coworld.target_updates`` updates. Between the two, :func:`consolidate_on_source` takes
+``coworld.iterations`` x ``coworld.target_updates`` updates. Between the two,
+:func:`coworld.training.finetune.consolidate_on_source` calls :meth:`EwcDreamerV2.consolidate`, which takes
 the source weights ``theta*`` and estimates the diagonal Fisher information ``F`` of each network's loss on
 ``ewc.fisher_batches`` batches of the source experience (:func:`coworld.losses.ewc.fisher_diagonal`); from then
 on every update adds ``ewc.weight / 2 * sum_i F_i (theta_i - theta*_i)^2`` (:func:`coworld.losses.ewc.ewc_penalty`)
@@ -19,7 +20,6 @@ is ``dreamerv2-finetune``. The anchor and ``F`` are part of the agent's state (i
 from __future__ import annotations
 
 from collections.abc import Iterable, Mapping
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -31,9 +31,8 @@ from coworld.config import Config
 from coworld.losses.ewc import ewc_penalty, fisher_diagonal
 from coworld.models.actor_critic import flatten_states
 from coworld.models.networks import frozen_parameters
-from coworld.training.logger import Logger
 
-__all__ = ["NETWORKS", "EwcDreamerV2", "consolidate_on_source"]
+__all__ = ["NETWORKS", "EwcDreamerV2"]
 
 NETWORKS = ("world_model", "actor", "critic")
 """The networks EWC holds, each with its own loss, anchor and Fisher."""
@@ -152,16 +151,3 @@ def _grads(module: nn.Module) -> dict[str, Tensor]:
         name: (p.grad.detach().clone() if p.grad is not None else torch.zeros_like(p))
         for name, p in module.named_parameters()
     }
-
-
-def consolidate_on_source(agent: EwcDreamerV2, job: Any, *, logger: Logger) -> None:
-    """After the source phase of ``job``'s run: :meth:`EwcDreamerV2.consolidate` on ``ewc.fisher_batches`` batches
-    drawn (seeded by the run's seed) from the source experience in ``<run>/source_replay.h5``."""
-    from coworld.data import open_dataset
-
-    config = job.config
-    with open_dataset(Path(job.logdir) / "source_replay.h5") as dataset:
-        sampler = iter(dataset.sampler(config.train.batch_size, config.train.seq_len, seed=config.seed))
-        batches = (next(sampler) for _ in range(config.ewc.fisher_batches))
-        metrics = agent.consolidate(batches)
-    logger.log(metrics, 0, unit="update")

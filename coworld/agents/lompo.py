@@ -32,11 +32,11 @@ from torch import Tensor
 from coworld.agents.dreamerv2 import _optimizer, _to_floats
 from coworld.agents.dreamerv2_penalty import PenaltyDreamerV2
 from coworld.config import Config
+from coworld.distributions import OneHotCategorical
 from coworld.losses.curl import twin_q_loss
 from coworld.losses.lompo import deterministic_actor_loss, log_prob_spread, td_target
 from coworld.losses.penalty import penalised_reward
 from coworld.models.actor_critic import flatten_states
-from coworld.models.distributions import OneHotCategorical
 from coworld.models.latent_actor_critic import LatentActorCritic
 from coworld.models.networks import frozen_parameters
 from coworld.models.rssm import State

@@ -465,6 +465,25 @@ class DatasetWriter:
             )
         return {name: value.astype(self._infos[name][0], copy=False) for name, value in arrays.items()}
 
+    def keep_episodes(self, episodes: int) -> None:
+        """Keep the first ``episodes`` committed episodes and drop the rest, as a resumed writer drops a killed one's
+        uncommitted rows (a two-phase run's source replay cut back to its agent's checkpoint)."""
+        f = self._handle()
+        if not 0 <= episodes <= self.num_episodes:
+            raise ValueError(f"cannot keep {episodes} of {self.num_episodes} episodes")
+        if episodes == self.num_episodes:
+            return
+        rows = int(self._nodes["episodes/starts"][episodes])
+        try:
+            f.attrs["num_rows"] = rows
+            f.attrs["num_episodes"] = episodes
+            f.attrs["updated"] = _now()
+            self._drop_uncommitted(f)
+        except (OSError, RuntimeError) as err:
+            if failure_errno(err) not in WRITE_ERRNOS:
+                raise
+            raise self._refused(err) from None
+
     def update_metadata(self, **collector_fields: Any) -> None:
         """Merge fields into the ``collector`` record (e.g. ``last_eval_return=512.0``, ``stop_reason="steps"``)."""
         f = self._handle()

@@ -6,10 +6,11 @@ step (``(B, T)`` for world-model sequences, ``(H, N)`` for imagined trajectories
 per-element arithmetic here can be held side by side with the paper:
 
 * Eq. 3, representation alignment: :func:`alignment_loss` (categorical posteriors, the paper's reading) and
-  :func:`embedding_alignment_loss` (conv embeddings, the authors' public release).
+  :func:`embedding_alignment_loss` (conv embeddings, the authors' public release), reduced by
+  :func:`alignment_term`.
 * Eqs. 4-5, target-modulated source reward: :func:`relabel_reward` and :func:`source_reward_loss_on_target`.
-* Eq. 6, max-min value regularisation: :func:`value_regulariser`, :func:`max_min_active` and the full critic
-  objective :func:`regularised_critic_loss`.
+* Eq. 6, max-min value regularisation: :func:`value_regulariser`, :func:`max_min_active`, and the critic
+  objective the target agent trains with, :func:`regularised_critic_loss`.
 * Several candidate sources (the later paper's multi-source CoWorld): :func:`domain_distance` (Eq. 3's KL as a
   distance) and :func:`closest_source` (the choice).
 
@@ -26,11 +27,12 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from coworld.losses.dreamer import reward_loss
-from coworld.models.distributions import TwoHotSymlog, UnitGaussian
+from coworld.distributions import TwoHotSymlog, UnitGaussian
+from coworld.losses.dreamer import critic_loss, reward_loss
 
 __all__ = [
     "alignment_loss",
+    "alignment_term",
     "closest_source",
     "domain_distance",
     "embedding_alignment_loss",
@@ -125,29 +127,37 @@ def embedding_alignment_loss(source_embed: Tensor, target_embed: Tensor) -> Tens
     return (log_p.exp() * (log_p - log_q)).sum(dim=-1)
 
 
+def alignment_term(source: Tensor, target: Tensor, align_on: str = "latent") -> Tensor:
+    """Eq. 3's alignment term as the target world-model loss adds it, before ``beta2``: a 0-d tensor.
+
+    * ``'latent'``: ``source``/``target`` are posterior logits ``(B, T, S, K)``; :func:`alignment_loss` averaged
+      over ``B`` and ``T``, like every other DreamerV2 world-model term;
+    * ``'embedding'``: ``(B, T, E)`` encoder embeddings; :func:`embedding_alignment_loss` summed over ``T`` and
+      averaged over ``B``, as the release's ``KLDivLoss(reduction="batchmean")`` on ``(B, T, E)`` does.
+
+    Gradient reaches ``target`` only.
+    """
+    if align_on == "latent":
+        return alignment_loss(source, target).mean()
+    if align_on == "embedding":
+        return embedding_alignment_loss(source, target).sum(dim=1).mean()
+    raise ValueError(f"align_on must be 'latent' or 'embedding', got {align_on!r}")
+
+
 def domain_distance(source: Tensor, target: Tensor, align_on: str = "latent") -> Tensor:
-    """How far a source world model's latents on target frames lie from the target model's: Eq. 3's KL, reduced as
-    the alignment term reduces it, without ``beta2`` and without gradient.
+    """How far a source world model's latents on target frames lie from the target model's: Eq. 3's term
+    (:func:`alignment_term`) without ``beta2`` and without gradient.
 
     The later paper's multi-source CoWorld picks the source whose latents on the target data lie closest to the
     target's, by a KL between the world models' latents; the authors' release computes it as its Eq. 3 term
     (``_latent_distance``: ``KLDivLoss(batchmean)(log_softmax(e_T), softmax(e_S))``, i.e. ``KL[e_S || e_T]``,
-    source first as in Eq. 3). Here it follows ``coworld.align_on``:
-
-    * ``'latent'``: ``source``/``target`` are posterior logits ``(B, T, S, K)``; the distance is
-      :func:`alignment_loss` averaged over ``B`` and ``T``;
-    * ``'embedding'``: ``(B, T, E)`` encoder embeddings; :func:`embedding_alignment_loss` summed over ``T`` and
-      averaged over ``B`` (the release's ``batchmean``).
+    source first as in Eq. 3). Here it follows ``coworld.align_on``.
 
     Returns:
         a 0-d tensor, ``>= 0``; 0 where the two models put the frames at the same latent distribution.
     """
     with torch.no_grad():
-        if align_on == "latent":
-            return alignment_loss(source, target).mean()
-        if align_on == "embedding":
-            return embedding_alignment_loss(source, target).sum(dim=1).mean()
-    raise ValueError(f"align_on must be 'latent' or 'embedding', got {align_on!r}")
+        return alignment_term(source, target, align_on)
 
 
 def closest_source(distances: Mapping[str, float]) -> str:
@@ -289,47 +299,44 @@ def value_regulariser(target_value: Tensor, source_value: Tensor, zeta: float) -
 
 
 def regularised_critic_loss(
-    value: Tensor,
+    value: UnitGaussian | TwoHotSymlog | Tensor,
     target: Tensor,
+    weight: Tensor,
     source_value: Tensor,
     alpha: float,
     zeta: float,
-    weight: Tensor | None = None,
 ) -> Tensor:
-    """Target critic objective of Eq. 6, term by term.
+    """Target critic objective of Eq. 6, as the target agent's critic step computes it.
 
     Paper, Eq. 6::
 
         L(xi) = E[ sum_{t=1}^{H-1}  0.5 * (v^(T)_xi(z_t) - sg(V^(T)_t))^2
                                   + alpha * max( zeta * v^(T)_xi(z_t), sg(v^(S)_xi'(z_t)) ) ]
 
-    The first term is DreamerV2's critic regression onto the lambda-returns ``V_t`` (a unit-variance Gaussian
-    log-likelihood up to its constant); the second is :func:`value_regulariser`. If ``weight`` is given
-    (DreamerV2's cumulative imagination discount), it multiplies the whole per-step loss, as in DreamerV2 and
-    the release; it is detached. Pass the ``H`` steps that Eq. 6 sums over (DreamerV2 fits values on all but the
-    last imagined state).
+    The first term is DreamerV2's critic regression onto the lambda-returns ``V_t``
+    (:func:`~coworld.losses.dreamer.critic_loss`: a unit-variance Gaussian's negative log-likelihood up to its
+    constant, or a two-hot critic's cross-entropy); the second is :func:`value_regulariser` on the critic's mean.
+    Both are multiplied by ``weight``, DreamerV2's cumulative imagination discount (detached), as in DreamerV2 and
+    the release. Pass the ``H`` steps that Eq. 6 sums over (DreamerV2 fits values on all but the last imagined
+    state).
 
-    Release difference: the release uses ``zeta = 1`` and the same ``weight`` on both terms, then averages
-    over all elements; Table 3 gives ``alpha = 0.2``, the release uses other values per suite.
+    Release difference: the release uses ``zeta = 1`` and the same ``weight`` on both terms, then averages over all
+    elements; Table 3 gives ``alpha = 0.2``, the release 1.5.
 
     Args:
-        value: ``(H, N)`` target critic values ``v_T(z)`` (with gradient).
+        value: ``(H, N)`` the target critic's distribution over ``v_T(z)`` or its mean (with gradient).
         target: ``(H, N)`` lambda-returns ``V_lambda``; detached here.
+        weight: ``(H, N)`` per-step weight; detached here.
         source_value: ``(H, N)`` source critic values ``v_S(z)`` on the same states; detached here.
         alpha: scale of the max-min term, non-negative.
         zeta: scale of the target values inside the max, positive.
-        weight: optional ``(H, N)`` per-step weight; detached here.
 
     Returns:
-        ``(H, N)`` per-step loss; gradient with respect to ``value`` is
+        ``(H, N)`` per-step loss; for a Gaussian critic its gradient with respect to the mean ``v_T`` is
         ``weight * ((v_T - V_lambda) + alpha * zeta * active)``.
     """
     if alpha < 0.0:
         raise ValueError(f"alpha must be non-negative, got {alpha}")
-    _check_same_shape(value=value, target=target, source_value=source_value)
-    fit = 0.5 * (value - target.detach()).square()
-    loss = fit + alpha * value_regulariser(value, source_value, zeta)
-    if weight is not None:
-        _check_same_shape(value=value, weight=weight)
-        loss = weight.detach() * loss
-    return loss
+    mean = value if isinstance(value, Tensor) else value.mean
+    _check_same_shape(value=mean, target=target, source_value=source_value, weight=weight)
+    return critic_loss(value, target, weight) + weight.detach() * (alpha * value_regulariser(mean, source_value, zeta))

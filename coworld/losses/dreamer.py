@@ -11,7 +11,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from coworld.models.distributions import Bernoulli, TwoHotSymlog, UnitGaussian, categorical_kl
+from coworld.distributions import Bernoulli, TwoHotSymlog, UnitGaussian, categorical_kl
 
 __all__ = [
     "actor_loss",
@@ -84,7 +84,7 @@ def kl_balanced_loss(
     Shapes: logits ``(B, T, S, K)``. Returns ``(loss, kl)``: the scalar loss and the per-step KL ``(B, T)``
     *before* free nats, whose value is ``KL[post || prior]`` and whose gradient is already split
     ``a * KL_prior + (1 - a) * KL_post``. ``normalised``: the logits are log-probabilities already (see
-    :func:`~coworld.models.distributions.categorical_kl`).
+    :func:`~coworld.distributions.categorical_kl`).
     """
     kl_prior = categorical_kl(post_logits.detach(), prior_logits, normalised)
     kl_post = categorical_kl(post_logits, prior_logits.detach(), normalised)

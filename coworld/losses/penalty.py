@@ -18,7 +18,7 @@ from __future__ import annotations
 
 from torch import Tensor
 
-from coworld.models.distributions import categorical_kl
+from coworld.distributions import categorical_kl
 
 __all__ = ["head_loss", "mean_disagreement", "penalised_reward"]
 

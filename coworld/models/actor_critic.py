@@ -27,21 +27,26 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from coworld.config import ActorCriticConfig
-from coworld.errors import ConfigError
-from coworld.losses.dreamer import actor_loss, critic_loss, lambda_return
-from coworld.models.distributions import (
+from coworld.distributions import (
     Normal,
     TanhNormal,
     TruncatedNormal,
+    TwoHotSymlog,
+    UnitGaussian,
 )
+from coworld.errors import ConfigError
+from coworld.losses.dreamer import actor_loss, critic_loss, lambda_return
 from coworld.models.networks import MLP, frozen_parameters
 from coworld.models.rssm import State
 from coworld.models.world_model import ScalarHead, WorldModel
 
-__all__ = ["Actor", "ActorCritic", "ValueRegulariser", "flatten_states"]
+__all__ = ["Actor", "ActorCritic", "CriticObjective", "flatten_states"]
 
-ValueRegulariser = Callable[[Tensor, Tensor], Tensor]
-"""``(feat (H, N, F), value (H, N)) -> (H, N)``: an extra per-state critic loss (CoWorld's Eq. 6 term)."""
+CriticObjective = Callable[[Tensor, UnitGaussian | TwoHotSymlog, Tensor, Tensor], tuple[Tensor, dict[str, Tensor]]]
+"""``(feat (H, N, F), value, lambda-returns (H, N), weight (H, N)) -> (loss (H, N), metrics)``: the critic's loss in
+place of DreamerV2's :func:`~coworld.losses.dreamer.critic_loss` (CoWorld's Eq. 6,
+:func:`~coworld.losses.coworld.regularised_critic_loss`); ``feat`` are the detached features of the states the
+critic is fitted on, ``value`` its distribution there (with gradient)."""
 
 ACTOR_DISTS = ("trunc_normal", "tanh_normal", "normal")
 ACTOR_GRADS = ("dynamics", "reinforce")
@@ -84,7 +89,7 @@ class Actor(nn.Module):
         dist: str,
         min_std: float,
         max_std: float = 1.0,
-        norm: bool = False,
+        norm: str = "none",
         act: str = "elu",
     ) -> None:
         super().__init__()
@@ -228,13 +233,12 @@ class ActorCritic(nn.Module):
         self,
         world_model: WorldModel,
         traj: dict[str, Tensor | State],
-        value_regulariser: ValueRegulariser | None = None,
+        critic_objective: CriticObjective | None = None,
     ) -> tuple[dict[str, Tensor], dict[str, Tensor]]:
         """Actor and critic losses on an imagined trajectory (see the module docstring).
 
-        ``value_regulariser(feat (H, N, F), value (H, N)) -> (H, N)`` is called with the detached features of
-        the states ``0..H-1`` and the critic's own mean value there (with gradient); its output, multiplied by
-        the same discount weight as the regression term, is added to the critic loss (CoWorld's Eq. 6).
+        ``critic_objective`` (:data:`CriticObjective`) computes the critic's loss on the states ``0..H-1`` in place
+        of DreamerV2's regression (CoWorld's Eq. 6); its metrics join the returned ones.
 
         Returns ``(terms, metrics)``: ``terms['actor']`` and ``terms['critic']`` are the scalar losses,
         ``terms['actor_terms'] (H-1, N)`` and ``terms['critic_terms'] (H, N)`` the unreduced ones, and
@@ -281,16 +285,16 @@ class ActorCritic(nn.Module):
         critic_feat = feat[:-1].detach()
         value_dist = self.critic(critic_feat)
         value = value_dist.mean
-        critic_terms = critic_loss(value_dist, target, weight[:-1])
         metrics: dict[str, Tensor] = {}
+        if critic_objective is None:
+            critic_terms = critic_loss(value_dist, target, weight[:-1])
+        else:
+            critic_terms, extra = critic_objective(critic_feat, value_dist, target, weight[:-1])
+            if critic_terms.shape != value.shape:
+                raise ValueError(f"critic_objective returned {tuple(critic_terms.shape)}, expected {value.shape}")
+            metrics.update(extra)
         if cfg.slow_regulariser > 0.0:
             critic_terms = critic_terms + cfg.slow_regulariser * critic_loss(value_dist, slow_value[:-1], weight[:-1])
-        if value_regulariser is not None:
-            regulariser = value_regulariser(critic_feat, value)
-            if regulariser.shape != value.shape:
-                raise ValueError(f"value_regulariser returned {tuple(regulariser.shape)}, expected {value.shape}")
-            critic_terms = critic_terms + weight[:-1].detach() * regulariser
-            metrics["critic/regulariser"] = regulariser.detach().mean()
         assert actor_terms.shape == (horizon - 1, feat.shape[1]) and critic_terms.shape == value.shape
         terms = {
             "actor": actor_terms.mean(),

@@ -1,7 +1,7 @@
 """LOMPO's actor-critic on latent features: a deterministic tanh actor and twin Q-functions with Polyak targets.
 
 The networks are this project's :class:`~coworld.models.networks.MLP` (ELU, no norm, as V-D4RL's LOMPO
-``DenseNetwork`` and ``ActorNetwork``). The actor returns a :class:`~coworld.models.distributions.Normal` centred on
+``DenseNetwork`` and ``ActorNetwork``). The actor returns a :class:`~coworld.distributions.Normal` centred on
 its action with LOMPO's exploration noise as the spread, so the DreamerV2 agent's ``policy`` acts with it unchanged:
 the mode in evaluation, a noisy sample (clipped to ``[-1, 1]``) when acting to train.
 """
@@ -14,7 +14,7 @@ import torch
 from torch import Tensor, nn
 
 from coworld.config import LompoConfig
-from coworld.models.distributions import Normal
+from coworld.distributions import Normal
 from coworld.models.networks import MLP
 
 __all__ = ["LatentActor", "LatentActorCritic"]

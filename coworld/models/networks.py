@@ -20,6 +20,7 @@ from contextlib import contextmanager
 import torch
 from torch import Tensor, nn
 
+from coworld import config
 from coworld.errors import ConfigError, CoworldError
 
 __all__ = [
@@ -42,17 +43,13 @@ __all__ = [
 SUPPORTED_IMAGE_SIZE = 64
 """DreamerV2's conv stacks take 64 x 64 images and decode back to 64 x 64."""
 
-ACTIVATIONS: dict[str, type[nn.Module]] = {
-    "elu": nn.ELU,
-    "silu": nn.SiLU,
-    "relu": nn.ReLU,
-    "gelu": nn.GELU,
-    "tanh": nn.Tanh,
-}
-"""Hidden activations by their config names (DreamerV2: ``elu``; DreamerV3: ``silu``)."""
+ACTIVATIONS: dict[str, type[nn.Module]] = dict(
+    zip(config.ACTIVATIONS, (nn.ELU, nn.SiLU, nn.ReLU, nn.GELU, nn.Tanh), strict=True)
+)
+"""Hidden activations by their config names (:data:`coworld.config.ACTIVATIONS`)."""
 
-NORMS = ("none", "layer")
-"""Normalisations after a hidden layer, by their config names: none (DreamerV2) or LayerNorm (DreamerV3)."""
+NORMS = config.NORMS
+"""Normalisations after a hidden layer, by their config names (:data:`coworld.config.NORMS`)."""
 
 
 def make_act(name: str) -> nn.Module:
@@ -213,13 +210,13 @@ class MLP(nn.Module):
     """
 
     def __init__(
-        self, *, in_size: int, out_size: int, units: int, layers: int, norm: bool = False, act: str = "elu"
+        self, *, in_size: int, out_size: int, units: int, layers: int, norm: str = "none", act: str = "elu"
     ) -> None:
         super().__init__()
         modules: list[nn.Module] = []
         size = in_size
         for _ in range(layers):
-            modules += [nn.Linear(size, units), *make_norm("layer" if norm else "none", units), make_act(act)]
+            modules += [nn.Linear(size, units), *make_norm(norm, units), make_act(act)]
             size = units
         modules.append(nn.Linear(size, out_size))
         self.net = nn.Sequential(*modules)

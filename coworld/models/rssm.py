@@ -19,7 +19,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from coworld.models.distributions import OneHotCategorical, exponential_noise
+from coworld.distributions import OneHotCategorical, exponential_noise
 from coworld.models.networks import LayerNormGRUCell, glorot_init, make_act, make_norm
 
 __all__ = ["RSSM", "State", "stack_states"]

@@ -19,8 +19,8 @@ import torch
 from torch import Tensor, nn
 
 from coworld.config import WorldModelConfig
+from coworld.distributions import TWOHOT_BINS, Bernoulli, TwoHotSymlog, UnitGaussian, head_distribution
 from coworld.losses.dreamer import discount_loss, image_loss, kl_balanced_loss, reward_loss
-from coworld.models.distributions import TWOHOT_BINS, Bernoulli, TwoHotSymlog, UnitGaussian, head_distribution
 from coworld.models.networks import MLP, ConvDecoder, ConvEncoder, check_image_shape
 from coworld.models.rssm import RSSM, State
 
@@ -45,7 +45,7 @@ class ScalarHead(nn.Module):
     """
 
     def __init__(
-        self, *, feat_size: int, units: int, layers: int, dist: str = "gaussian", norm: bool = False, act: str = "elu"
+        self, *, feat_size: int, units: int, layers: int, dist: str = "gaussian", norm: str = "none", act: str = "elu"
     ) -> None:
         super().__init__()
         self.dist = dist
@@ -63,7 +63,7 @@ class DiscountHead(nn.Module):
     ``discount_head(feat).mean`` is the predicted probability that the episode continues, ``(...)``.
     """
 
-    def __init__(self, *, feat_size: int, units: int, layers: int, norm: bool = False, act: str = "elu") -> None:
+    def __init__(self, *, feat_size: int, units: int, layers: int, norm: str = "none", act: str = "elu") -> None:
         super().__init__()
         self.mlp = MLP(in_size=feat_size, out_size=1, units=units, layers=layers, norm=norm, act=act)
 

@@ -124,7 +124,7 @@ def _markdown(root: Path, results: list[RunResult], figures: list[tuple[str, str
             "## Source choice",
             "",
             "Runs that chose among several sources: each candidate's distance to the target (Eq. 3's KL between its"
-            " latents and the target's on target frames; `coworld.agents.choice`), the chosen one in bold.",
+            " latents and the target's on target frames; `coworld.training.choice`), the chosen one in bold.",
             "",
             *choices,
             "",

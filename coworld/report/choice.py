@@ -1,5 +1,5 @@
 """The report's "Source choice" section: for each run that chose among several sources (``--source A,B,...``), the
-candidates' distances to the target and the one it chose (``source_choice.json``, :mod:`coworld.agents.choice`)."""
+candidates' distances to the target and the one it chose (``source_choice.json``, :mod:`coworld.training.choice`)."""
 
 from __future__ import annotations
 

@@ -531,7 +531,7 @@ def check_pair(source: str, target: str, algos: Sequence[str]) -> None:
 
 def parse_pairs(text: str) -> tuple[tuple[str, str], ...]:
     """``"a:b,c:d"`` -> ``(("a", "b"), ("c", "d"))``; ``"a+b:c"``: CoWorld choosing between sources a and b for
-    target c (:mod:`coworld.agents.choice`). Task names are checked."""
+    target c (:mod:`coworld.training.choice`). Task names are checked."""
     pairs = []
     for item in (part.strip() for part in text.split(",")):
         if not item:

@@ -3,9 +3,9 @@
 Offline DreamerV2, V-D4RL's penalised DreamerV2, LOMPO and the fine-tuned DreamerV2 (with or without EWC) get the
 same number of target updates as CoWorld's target agent (``coworld.iterations * coworld.target_updates``),
 evaluated and checkpointed once per CoWorld iteration's worth of updates, so they are compared at equal cost. The
-fine-tuned DreamerV2 first learns online in the source task (:func:`coworld.agents.dreamerv2_finetune.
+fine-tuned DreamerV2 first learns online in the source task (:func:`coworld.training.finetune.
 pretrain_on_source`); with EWC it then takes its source weights and their Fisher information
-(:func:`coworld.agents.dreamerv2_ewc.consolidate_on_source`).
+(:func:`coworld.training.finetune.consolidate_on_source`).
 """
 
 from __future__ import annotations
@@ -17,9 +17,9 @@ import torch
 from coworld.agents.factory import make_agent
 from coworld.data import open_dataset
 from coworld.envs import task_spec
+from coworld.training.job import CHECKPOINT_KINDS, MODEL_FREE, TrainJob
 from coworld.training.logger import Logger
 from coworld.training.offline import OfflineSchedule, OfflineTrainer
-from coworld.training.train import CHECKPOINT_KINDS, MODEL_FREE, TrainJob
 
 
 def schedule_for(job: TrainJob) -> OfflineSchedule:
@@ -85,12 +85,10 @@ def train_offline(job: TrainJob, *, device: torch.device, resumed: bool, progres
         )
         restored = resumed and trainer.restore()
         if job.source is not None and not restored:
-            from coworld.agents.dreamerv2_finetune import pretrain_on_source
+            from coworld.training.finetune import consolidate_on_source, pretrain_on_source
 
             pretrain_on_source(agent, job, logger=logger, progress=progress)
             if job.algo == "dreamerv2-finetune-ewc":
-                from coworld.agents.dreamerv2_ewc import consolidate_on_source
-
                 consolidate_on_source(agent, job, logger=logger)
         result = trainer.run(progress=progress)
     dataset.close()

@@ -18,8 +18,8 @@ from coworld.config import Config, first_difference, from_dict, to_dict
 from coworld.envs import task_spec
 from coworld.errors import CheckpointError, CoworldError
 from coworld.training.checkpoint import CHECKPOINT_NAME, load_checkpoint
+from coworld.training.job import ALGOS, CHECKPOINT_KINDS, parse_sources
 from coworld.training.run import load_run
-from coworld.training.train import ALGOS, CHECKPOINT_KINDS, parse_sources
 
 ONLINE_KIND = "dreamerv2-online"
 """The checkpoint of an agent that learned online (the dreamerv2 collector, a source agent's pretraining)."""

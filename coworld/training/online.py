@@ -45,6 +45,7 @@ import torch
 from coworld import envs, interrupt
 from coworld.config import Config, to_dict
 from coworld.data import DatasetWriter, open_dataset
+from coworld.errors import CheckpointError
 from coworld.progress import progress_bar
 from coworld.training.checkpoint import (
     CHECKPOINT_NAME,
@@ -204,20 +205,31 @@ class OnlineTrainer:
     def checkpoint_path(self) -> Path:
         return self.logdir / CHECKPOINT_NAME
 
-    def restore(self) -> dict[str, Any] | None:
-        """Reload agent, counters and RNG from the checkpoint and the replay from the dataset, if any."""
+    def restore(self, *, rollback: bool = False) -> dict[str, Any] | None:
+        """Reload agent, counters and RNG from the checkpoint and the replay from the dataset, if any.
+
+        ``rollback`` (a source agent's pretraining): the dataset is first cut back to the episodes the checkpoint had
+        seen (to none without a checkpoint), so the agent, its counters and its replay are again those of one moment
+        of the run, and the rerun ends with the counts an uninterrupted run ends with. Without it (collection) every
+        recorded episode is kept: the dataset is what the run is for.
+        """
+        state = None
+        if self.checkpoint_path.exists():
+            state = load_checkpoint(
+                self.checkpoint_path, map_location=getattr(self.agent, "device", "cpu"), keys=CHECKPOINT_KEYS
+            )
+            if state["kind"] != CHECKPOINT_KIND:
+                raise CheckpointError(
+                    f"{self.checkpoint_path} is a {state['kind']!r} checkpoint, not {CHECKPOINT_KIND!r}"
+                )
+        if rollback:
+            seen = 0 if state is None else state.get("episodes", self.writer.num_episodes)
+            self.writer.keep_episodes(min(int(seen), self.writer.num_episodes))
         for episode in dataset_episodes(self.writer.path) if self.writer.num_episodes else []:
             self.replay.add_episode(episode)
         self.steps = self.writer.num_steps
-        if not self.checkpoint_path.exists():
+        if state is None:
             return None
-        state = load_checkpoint(
-            self.checkpoint_path, map_location=getattr(self.agent, "device", "cpu"), keys=CHECKPOINT_KEYS
-        )
-        if state["kind"] != CHECKPOINT_KIND:
-            from coworld.errors import CheckpointError
-
-            raise CheckpointError(f"{self.checkpoint_path} is a {state['kind']!r} checkpoint, not {CHECKPOINT_KIND!r}")
         load_agent_state(self.agent, state["agent"], self.checkpoint_path, "an online dreamerv2 agent of this config")
         self.updates = int(state["updates"])
         self.last_eval = state["last_eval"]
@@ -235,6 +247,7 @@ class OnlineTrainer:
             "config": to_dict(self.config),
             "agent": self.agent.state_dict(),
             "steps": self.steps,
+            "episodes": self.writer.num_episodes,
             "updates": self.updates,
             "last_eval": self.last_eval,
             "last_eval_step": self.last_eval_step,
@@ -522,3 +535,30 @@ def make_source_trainer(
         metric_prefix="source/",
         step_unit_prefix="source_",
     )
+
+
+def pretrain_source(
+    agent: Any,
+    source: str,
+    *,
+    config: Config,
+    logdir: str | Path,
+    logger: Logger,
+    algorithm: str,
+    progress: bool = True,
+    cut_episodes: bool = True,
+) -> int:
+    """A two-phase run's source agent (a fine-tuned DreamerV2, a candidate source of CoWorld's choice) trained online
+    in ``source`` until ``coworld.pretrain_steps`` steps, recorded in ``<logdir>/source_replay.h5``; a stopped
+    pretraining resumes from its last checkpoint with its replay cut back to it (:meth:`OnlineTrainer.restore`).
+    Returns the source environment steps taken."""
+    writer = source_replay_writer(logdir, source, algorithm=algorithm, seed=config.seed)
+    with writer:
+        trainer = make_source_trainer(agent, source, config=config, logdir=logdir, writer=writer, logger=logger)
+        try:
+            trainer.restore(rollback=True)
+            if trainer.steps < config.coworld.pretrain_steps or not trainer.checkpoint_path.exists():
+                trainer.run(max_steps=config.coworld.pretrain_steps, progress=progress, cut_episodes=cut_episodes)
+        finally:
+            trainer.close()
+    return trainer.steps

@@ -55,7 +55,7 @@ RUN_ARTEFACTS = (
     "source",
     "source_replay.h5",
     "eval.json",
-    "source_choice.json",  # CoWorld choosing among several sources (coworld.agents.choice)
+    "source_choice.json",  # CoWorld choosing among several sources (coworld.training.choice)
     "sources",
     "selection",
 )

@@ -1,4 +1,4 @@
-"""The record of CoWorld's automatic source choice in a run folder (made by :mod:`coworld.agents.choice`), read by
+"""The record of CoWorld's automatic source choice in a run folder (made by :mod:`coworld.training.choice`), read by
 ``train`` (resuming), ``report`` and ``eval`` alike: which candidates, each one's distance to the target, the chosen."""
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ CHOICE_FILE = "source_choice.json"
 
 @dataclass(frozen=True)
 class SourceChoice:
-    """What :func:`coworld.agents.choice.choose_source` decided: the candidates in the order given, each one's
+    """What :func:`coworld.training.choice.choose_source` decided: the candidates in the order given, each one's
     distance, the chosen."""
 
     candidates: tuple[str, ...]
@@ -77,3 +77,29 @@ def trained_source(run_dir: str | Path, info: Mapping[str, Any]) -> str | None:
         return source
     choice = read_choice(run_dir)
     return choice.chosen if choice is not None else None
+
+
+DISTANCES_FILE = "selection/distances.json"
+"""The candidates' distances measured so far, in the run folder, until the choice is written."""
+
+
+def read_distances(run_dir: str | Path, candidates: Sequence[str]) -> dict[str, float]:
+    """The distances measured so far in ``run_dir`` (``{}`` before the first), each of one of ``candidates``; a damaged
+    file is one CheckpointError line saying how to measure again."""
+    path = Path(run_dir) / DISTANCES_FILE
+    if not path.exists():
+        return {}
+    fix = f"delete {path} to measure the candidates again, or pass --force to start the run over"
+    try:
+        data = json.loads(path.read_bytes().decode("utf-8"))
+    except (OSError, UnicodeDecodeError, ValueError) as err:
+        raise CheckpointError(f"{path} is damaged ({type(err).__name__}); {fix}") from None
+    if not isinstance(data, dict):
+        raise CheckpointError(f"{path} is damaged (not a JSON object of distances); {fix}")
+    for name, value in data.items():
+        if name not in candidates:
+            sources = ", ".join(candidates)
+            raise CheckpointError(f"{path} names {name!r}, not one of this run's sources {sources}; {fix}")
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            raise CheckpointError(f"{path} is damaged ({name}'s distance is {value!r}, not a number); {fix}")
+    return {name: float(value) for name, value in data.items()}

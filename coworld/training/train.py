@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Sequence
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -17,56 +16,15 @@ from coworld import envs
 from coworld.config import Config, make_config
 from coworld.data.collect import default_dataset_path
 from coworld.errors import CoworldError, DatasetError
-
-ALGOS = (
-    "coworld",
-    "dreamerv2",
-    "curl",
-    "curl-cql",
-    "drq-bc",
-    "dreamerv2-penalty",
-    "dreamerv2-finetune",
-    "lompo",
-    "dreamerv2-finetune-ewc",
+from coworld.training.job import (
+    ALGOS,
+    MODEL_BASED,
+    MODEL_FREE,
+    NEEDS_SOURCE,
+    TrainJob,
+    default_logdir,
+    parse_sources,
 )
-MODEL_FREE = ("curl", "curl-cql", "drq-bc")
-NEEDS_SOURCE = ("coworld", "dreamerv2-finetune", "dreamerv2-finetune-ewc")
-"""Algorithms that also learn online in a source task (``--source``); the others learn from the target dataset
-alone."""
-MODEL_BASED = ("coworld", "dreamerv2", "dreamerv2-penalty", "dreamerv2-finetune", "lompo", "dreamerv2-finetune-ewc")
-"""The algorithms that train DreamerV2's world model (and read ``train.backend``)."""
-
-CHECKPOINT_KINDS = {
-    "coworld": "coworld",
-    "dreamerv2": "dreamerv2-offline",
-    "curl": "curl",
-    "curl-cql": "curl-cql",
-    "drq-bc": "drq-bc",
-    "dreamerv2-penalty": "dreamerv2-penalty",
-    "dreamerv2-finetune": "dreamerv2-finetune",
-    "lompo": "lompo",
-    "dreamerv2-finetune-ewc": "dreamerv2-finetune-ewc",
-}
-
-
-def default_logdir(algo: str, source: str | None, target: str, seed: int) -> Path:
-    sources = "+".join(parse_sources(source)) if source else None  # a list of sources is written a+b in names
-    pair = f"{sources}-{target}" if sources and algo in NEEDS_SOURCE else target
-    return Path("runs") / f"{algo}-{pair}-s{seed}"
-
-
-def parse_sources(text: str) -> tuple[str, ...]:
-    """``--source``: one task, or several (CoWorld's automatic choice) separated by ``,`` (or ``+``, as sweep pairs
-    and run folder names write them); each a known task, none twice. One CoworldError line otherwise."""
-    names = [part.strip() for part in text.replace("+", ",").split(",")]
-    if not all(names):
-        raise CoworldError(f"source list {text!r} has an empty name; write TASK or TASK,TASK,... (see `coworld tasks`)")
-    for name in names:
-        envs.task_spec(name)
-    repeated = next((name for i, name in enumerate(names) if name in names[:i]), None)
-    if repeated is not None:
-        raise CoworldError(f"source list {text!r} names {repeated} twice; give each candidate source once")
-    return tuple(names)
 
 
 def check_source(algo: str, source: str, target: str) -> list[str]:
@@ -91,34 +49,6 @@ def check_source(algo: str, source: str, target: str) -> list[str]:
         f" different bodies that {shared}; the papers pair tasks of one body, and Meta-World sources with RoboDesk"
         " targets" + (f" ({paired} -> {target})" if paired else "")
     ]
-
-
-@dataclass(frozen=True)
-class TrainJob:
-    """A checked request to train."""
-
-    algo: str
-    source: str | None
-    target: str
-    dataset: Path
-    logdir: Path
-    config: Config
-    preset: str
-    resume: bool = False
-    """The run folder already holds this run: training continues from its checkpoint."""
-    start_over: bool = False
-    """``--force``: what training wrote in the run folder is removed first, and the run starts afresh."""
-    warnings: tuple[str, ...] = ()
-    """Things worth telling the user before a long run starts (one line each)."""
-
-    def info(self) -> dict[str, Any]:
-        return {
-            "algo": self.algo,
-            "source": self.source,
-            "target": self.target,
-            "dataset": str(self.dataset),
-            "preset": self.preset,
-        }
 
 
 def check_job(
@@ -208,7 +138,7 @@ def needed_steps(algo: str, config: Config) -> tuple[int, str] | None:
 def check_resumable(run_dir: Path, config: Config, info: dict[str, Any]) -> None:
     """The checkpoints a resumed run will load are whole and of this run (one line otherwise), checked before the
     run folder is touched; the main checkpoint, else a source agent's pretraining checkpoint."""
-    from coworld.agents.coworld import COWORLD_CHECKPOINT_KEYS
+    from coworld.training.coworld import CHECKPOINT_KEYS as COWORLD_CHECKPOINT_KEYS
     from coworld.training.loading import load_run_checkpoint
     from coworld.training.offline import CHECKPOINT_KEYS
     from coworld.training.online import CHECKPOINT_KEYS as ONLINE_KEYS
@@ -220,9 +150,11 @@ def check_resumable(run_dir: Path, config: Config, info: dict[str, Any]) -> None
         return
     sources = parse_sources(info["source"]) if info.get("source") else ()
     if len(sources) > 1:  # CoWorld choosing its source: each candidate's pretraining, the chosen one's once moved
-        from coworld.training.source_choice import candidate_dir, read_choice
+        from coworld.training.source_choice import candidate_dir, read_choice, read_distances
 
         choice = read_choice(run_dir, sources)
+        if choice is None:
+            read_distances(run_dir, sources)
         checks = [(candidate_dir(run_dir, name) / "source" / "checkpoint.pt", name) for name in sources]
         if choice is not None:
             checks.append((source, choice.chosen))
@@ -311,7 +243,7 @@ def run_job(job: TrainJob, *, progress: bool = True) -> dict[str, Any]:
     resumed = prepare_run_dir(job.logdir, job.config, job.info())
     seed_everything(job.config.seed)
     if job.algo == "coworld":
-        from coworld.agents.coworld import train_coworld
+        from coworld.training.coworld import train_coworld
 
         return train_coworld(job, device=device, resumed=resumed, progress=progress)
     from coworld.training.baselines import train_offline

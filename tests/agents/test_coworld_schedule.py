@@ -11,10 +11,10 @@ from typing import Any
 import pytest
 import torch
 
-from coworld.agents import coworld as coworld_module
 from coworld.agents.coworld import ALIGN_SOURCE, CoWorld, TargetBatches
 from coworld.config import make_config
 from coworld.data import open_dataset
+from coworld.losses.coworld import alignment_loss
 from coworld.training.online import OnlineTrainer
 from coworld.training.train import run_job
 
@@ -91,7 +91,7 @@ def test_alignment_term_reduction_matches_the_paper_and_the_release(align_on: st
             torch.log_softmax(target_embed, -1), torch.softmax(source_embed, -1)
         )
     else:  # the paper's posteriors, averaged over (B, T) like DreamerV2's other world-model terms
-        expected = coworld_module.alignment_loss(source_post["logits"], target_post["logits"]).mean()
+        expected = alignment_loss(source_post["logits"], target_post["logits"]).mean()
     torch.manual_seed(1)
     metrics = agent.train_target(batch)
     assert metrics["target/coworld/align_kl"] == pytest.approx(float(expected), rel=1e-4)

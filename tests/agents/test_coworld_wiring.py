@@ -226,14 +226,23 @@ def test_eq6_adds_alpha_times_the_max_of_zeta_v_target_and_the_frozen_source_val
     calls: list[dict[str, Tensor]] = []
     original = agent.target.train_actor_critic
 
-    def spy(post: Any, regulariser: Any = None, **kwargs: Any) -> Any:
-        assert regulariser is not None
+    def spy(post: Any, objective: Any = None, **kwargs: Any) -> Any:
+        assert objective is not None
 
-        def recording(feat: Tensor, value: Tensor) -> Tensor:
-            out = regulariser(feat, value)
-            (grad,) = torch.autograd.grad(out.sum(), value, retain_graph=True)
-            calls.append({"feat": feat.detach(), "value": value.detach(), "out": out.detach(), "grad": grad})
-            return out
+        def recording(feat: Tensor, value: Any, target: Tensor, weight: Tensor) -> Any:
+            out, metrics = objective(feat, value, target, weight)
+            (grad,) = torch.autograd.grad(out.sum(), value.mean, retain_graph=True)
+            calls.append(
+                {
+                    "feat": feat.detach(),
+                    "value": value.mean.detach(),
+                    "target": target.detach(),
+                    "weight": weight.detach(),
+                    "out": out.detach(),
+                    "grad": grad,
+                }
+            )
+            return out, metrics
 
         return original(post, recording, **kwargs)
 
@@ -246,13 +255,15 @@ def test_eq6_adds_alpha_times_the_max_of_zeta_v_target_and_the_frozen_source_val
     with torch.no_grad():
         source_value = agent.source.actor_critic.critic(call["feat"]).mean
     assert torch.equal(source_value, torch.zeros_like(source_value))
-    active = ZETA * call["value"] > source_value
+    value, returns, weight = call["value"], call["target"], call["weight"]
+    active = ZETA * value > source_value
     assert 0 < int(active.sum()) < active.numel()  # both sides of the max are in play
-    expected = ALPHA * torch.where(active, ZETA * call["value"], source_value)
-    torch.testing.assert_close(call["out"], expected)
-    torch.testing.assert_close(call["grad"], ALPHA * ZETA * active.float())
+    max_min = ALPHA * torch.where(active, ZETA * value, source_value)
+    # the critic's own regression (a unit Gaussian's NLL) plus the max-min term, both weighted by the discount
+    torch.testing.assert_close(call["out"], weight * (0.5 * (value - returns).square() + max_min))
+    torch.testing.assert_close(call["grad"], weight * ((value - returns) + ALPHA * ZETA * active.float()))
     assert metrics["target/coworld/maxmin_active"] == pytest.approx(float(active.float().mean()))
-    assert metrics["target/critic/regulariser"] == pytest.approx(float(expected.mean()), rel=1e-5)
+    assert metrics["target/critic/regulariser"] == pytest.approx(float(max_min.mean()), rel=1e-5)
     assert _unchanged(source_critic, agent.source.actor_critic)
     assert all(p.grad is None for p in agent.source.actor_critic.parameters())
 
@@ -458,7 +469,7 @@ def test_the_source_learner_acts_evaluates_and_trains_as_the_source_agent(target
     """What the online trainer drives in the source phases: the source agent's policy (keywords included) and
     value, and CoWorld's source update with its metrics' ``source/`` prefix taken off (the trainer adds its own)."""
     agent = _agent("coworld.reward_relabel=false")
-    learner = coworld_module._SourceLearner(agent)
+    learner = coworld_module.SourceLearner(agent)
     obs, is_first = _observations(), np.array([False, True])
     first = _act(learner.policy, obs, None, mode="eval")
     assert _same_actions(first, _act(agent.source.policy, obs, None, mode="eval"))

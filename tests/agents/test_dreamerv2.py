@@ -13,6 +13,7 @@ from coworld.agents.dreamerv2 import DreamerV2, resolve_precision
 from coworld.config import Config, make_config
 from coworld.devices import resolve_device
 from coworld.errors import ConfigError
+from coworld.losses.dreamer import critic_loss
 
 ACTION_SIZE = 2
 
@@ -217,7 +218,7 @@ def test_extra_world_model_loss_is_added_and_logged(tiny: Config) -> None:
     assert post["deter"].shape == (2, 6, tiny.world_model.deter) and not post["deter"].requires_grad
 
 
-def test_value_regulariser_hook_changes_the_critic_update(tiny: Config) -> None:
+def test_a_critic_objective_changes_the_critic_update_alone(tiny: Config) -> None:
     plain, regularised = (DreamerV2(config=tiny, action_size=ACTION_SIZE) for _ in range(2))
     regularised.load_state_dict(plain.state_dict())
     batch = numpy_batch()
@@ -226,7 +227,12 @@ def test_value_regulariser_hook_changes_the_critic_update(tiny: Config) -> None:
     m_plain = plain.train_actor_critic(post)
     torch.manual_seed(1)
     _, post = regularised.train_world_model(batch)
-    m_reg = regularised.train_actor_critic(post, lambda feat, value: 5.0 * value)
+
+    def objective(feat, value, target, weight):
+        extra = 5.0 * value.mean
+        return critic_loss(value, target, weight) + weight * extra, {"critic/regulariser": extra.detach().mean()}
+
+    m_reg = regularised.train_actor_critic(post, objective)
     assert m_reg["critic/regulariser"] == pytest.approx(5.0 * m_reg["critic/value"], rel=1e-5)
     assert m_reg["critic/loss"] != m_plain["critic/loss"]
     torch.testing.assert_close(_params(plain.actor_critic.actor), _params(regularised.actor_critic.actor))

@@ -9,6 +9,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
+from coworld.distributions import TWOHOT_BINS, TwoHotSymlog
 from coworld.losses.coworld import (
     alignment_loss,
     embedding_alignment_loss,
@@ -236,20 +237,31 @@ def test_regularised_critic_loss_term_by_term() -> None:
     alpha, zeta = 0.2, 1.5
     # fit: 0.5 * 1^2 = 0.5, 0.5 * 0.5^2 = 0.125; max: max(4.5, 2) = 4.5, max(1.5, 2.5) = 2.5.
     # loss: 1.0 * (0.5 + 0.2 * 4.5) = 1.4;  0.5 * (0.125 + 0.2 * 2.5) = 0.3125.
-    loss = regularised_critic_loss(value, returns, source, alpha=alpha, zeta=zeta, weight=weight)
+    loss = regularised_critic_loss(value, returns, weight, source, alpha=alpha, zeta=zeta)
     torch.testing.assert_close(loss, torch.tensor([[1.4, 0.3125]]))
     loss.sum().backward()
     # d/dv: weight * ((v - V) + alpha * zeta * active) = [1.0 * (1 + 0.3), 0.5 * (-0.5 + 0)].
     torch.testing.assert_close(value.grad, torch.tensor([[1.3, -0.25]]))
     assert returns.grad is None and source.grad is None and weight.grad is None
-    unweighted = regularised_critic_loss(value, returns, source, alpha=alpha, zeta=zeta)
+    unweighted = regularised_critic_loss(value, returns, torch.ones_like(weight), source, alpha=alpha, zeta=zeta)
     torch.testing.assert_close(unweighted, torch.tensor([[1.4, 0.625]]))
+
+
+def test_regularised_critic_loss_of_a_twohot_critic_is_its_cross_entropy_plus_the_max_min_term() -> None:
+    """Eq. 6 with the ``cpu`` preset's two-hot critic: the regression term is the critic's own negative
+    log-likelihood of the lambda-return, the max-min term reads the critic's mean."""
+    logits = torch.randn(2, 3, TWOHOT_BINS, generator=torch.Generator().manual_seed(0))
+    value = TwoHotSymlog(logits)
+    returns, source, weight = torch.full((2, 3), 0.5), torch.zeros(2, 3), torch.full((2, 3), 0.8)
+    loss = regularised_critic_loss(value, returns, weight, source, alpha=0.3, zeta=2.0)
+    expected = weight * (-value.log_prob(returns) + 0.3 * torch.maximum(2.0 * value.mean, source))
+    torch.testing.assert_close(loss, expected)
 
 
 def test_regularised_critic_loss_with_alpha_zero_is_plain_dreamer_critic() -> None:
     value = torch.tensor([[3.0, 1.0]])
     returns = torch.tensor([[2.0, 1.5]])
-    loss = regularised_critic_loss(value, returns, torch.tensor([[9.0, 9.0]]), alpha=0.0, zeta=1.0)
+    loss = regularised_critic_loss(value, returns, torch.ones(1, 2), torch.tensor([[9.0, 9.0]]), alpha=0.0, zeta=1.0)
     torch.testing.assert_close(loss, torch.tensor([[0.5, 0.125]]))
 
 
@@ -260,15 +272,15 @@ def test_eq6_rejects_bad_scales_and_shapes() -> None:
     with pytest.raises(ValueError, match="zeta"):
         max_min_active(v, v, zeta=-1.0)
     with pytest.raises(ValueError, match="alpha"):
-        regularised_critic_loss(v, v, v, alpha=-0.1, zeta=1.0)
+        regularised_critic_loss(v, v, v, v, alpha=-0.1, zeta=1.0)
     with pytest.raises(ValueError, match="one shape"):
-        regularised_critic_loss(v, v, v[:, :1], alpha=0.2, zeta=1.0)
+        regularised_critic_loss(v, v, v, v[:, :1], alpha=0.2, zeta=1.0)
     with pytest.raises(ValueError, match="one shape"):
-        regularised_critic_loss(v, v, v, alpha=0.2, zeta=1.0, weight=v[:1])
+        regularised_critic_loss(v, v, v[:1], v, alpha=0.2, zeta=1.0)
 
 
 def test_source_reward_loss_of_a_twohot_head_is_its_cross_entropy_of_the_label() -> None:
-    from coworld.models.distributions import TWOHOT_BINS, TwoHotSymlog
+    from coworld.distributions import TWOHOT_BINS, TwoHotSymlog
 
     torch.manual_seed(0)
     logits = torch.randn(2, 3, TWOHOT_BINS, requires_grad=True)
@@ -302,10 +314,11 @@ def test_shape_checks_name_every_tensor_and_refuse_broadcasting() -> None:
             fn(v, v[:1], zeta=1.0)
         with pytest.raises(ValueError, match=r"target_value=\(1, 4\), source_value=\(3, 4\)"):
             fn(v[:1], v, zeta=1.0)
-    names = ("value", "target", "source_value")
-    for i in range(3):
-        args = [v, v, v]
+    names = ("value", "target", "weight", "source_value")
+    for i in range(4):
+        args = [v, v, v, v]
         args[i] = v[:1]
-        shapes = ", ".join(f"{name}={(1, 4) if j == i else (3, 4)}" for j, name in enumerate(names))
+        shapes = [f"{name}={(1, 4) if j == i else (3, 4)}" for j, name in enumerate(names)]
+        shapes = ", ".join([shapes[0], shapes[1], shapes[3], shapes[2]])  # checked in the order value, target, source
         with pytest.raises(ValueError, match=re.escape(f"got {shapes}")):
             regularised_critic_loss(*args, alpha=0.2, zeta=1.0)

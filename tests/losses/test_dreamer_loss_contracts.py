@@ -7,8 +7,8 @@ from __future__ import annotations
 import pytest
 import torch
 
+from coworld.distributions import UnitGaussian
 from coworld.losses.dreamer import actor_loss, critic_loss, image_loss, reward_loss
-from coworld.models.distributions import UnitGaussian
 
 
 def test_critic_loss_names_the_value_and_the_target_when_their_shapes_differ() -> None:

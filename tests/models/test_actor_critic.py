@@ -9,10 +9,10 @@ import pytest
 import torch
 
 from coworld.config import Config, make_config
+from coworld.distributions import Normal, TanhNormal, TruncatedNormal
 from coworld.errors import ConfigError
-from coworld.losses.dreamer import lambda_return
+from coworld.losses.dreamer import critic_loss, lambda_return
 from coworld.models.actor_critic import ActorCritic, flatten_states
-from coworld.models.distributions import Normal, TanhNormal, TruncatedNormal
 from coworld.models.networks import frozen_parameters
 from coworld.models.world_model import WorldModel
 
@@ -115,27 +115,29 @@ def test_reinforce_actor_loss_has_no_path_through_dynamics(tiny: Config) -> None
     assert all(g is None or float(g.abs().sum()) == 0.0 for g in rssm_grads)
 
 
-def test_value_regulariser_gets_critic_value_and_adds_weighted_term(tiny: Config) -> None:
+def test_a_critic_objective_takes_the_critics_loss_with_its_states_value_returns_and_weights(tiny: Config) -> None:
     wm, ac, start = _setup(tiny)
     with frozen_parameters(wm):
         traj = ac.imagine(wm, start)
         seen: dict[str, torch.Tensor] = {}
 
-        def regulariser(feat: torch.Tensor, value: torch.Tensor) -> torch.Tensor:
-            seen["feat"], seen["value"] = feat, value
-            return 0.3 * value
+        def objective(feat: torch.Tensor, value, target: torch.Tensor, weight: torch.Tensor):
+            seen.update(feat=feat, value=value.mean, target=target, weight=weight)
+            return critic_loss(value, target, weight) + 0.3 * weight * value.mean, {"critic/extra": value.mean.mean()}
 
         plain, _ = ac.losses(wm, traj)
-        reg, metrics = ac.losses(wm, traj, value_regulariser=regulariser)
+        extra, metrics = ac.losses(wm, traj, critic_objective=objective)
     h, n = tiny.actor_critic.horizon, 6
     assert seen["feat"].shape == (h, n, wm.feat_size) and not seen["feat"].requires_grad
     assert seen["value"].requires_grad
     torch.testing.assert_close(seen["value"].detach(), ac.critic_value(traj["feat"][:-1]).detach())
-    extra = (traj["weight"][:-1] * 0.3 * seen["value"].detach()).mean()
-    torch.testing.assert_close(reg["critic"].detach(), plain["critic"].detach() + extra)
-    assert "critic/regulariser" in metrics
-    with pytest.raises(ValueError, match="value_regulariser"):
-        ac.losses(wm, traj, value_regulariser=lambda feat, value: value[:-1])
+    torch.testing.assert_close(seen["target"], plain["target"])
+    torch.testing.assert_close(seen["weight"], traj["weight"][:-1])
+    added = (traj["weight"][:-1] * 0.3 * seen["value"].detach()).mean()
+    torch.testing.assert_close(extra["critic"].detach(), plain["critic"].detach() + added)
+    assert "critic/extra" in metrics
+    with pytest.raises(ValueError, match="critic_objective"):
+        ac.losses(wm, traj, critic_objective=lambda feat, value, target, weight: (value.mean[:-1], {}))
 
 
 def test_slow_target_copies_every_n_updates(tiny: Config) -> None:
@@ -362,7 +364,7 @@ def test_slow_regulariser_adds_the_weighted_distance_to_the_slow_critic(tiny: Co
 
 
 def test_twohot_reward_head_and_critic_train_by_cross_entropy(tiny: Config) -> None:
-    from coworld.models.distributions import TWOHOT_BINS, TwoHotSymlog
+    from coworld.distributions import TWOHOT_BINS, TwoHotSymlog
 
     torch.manual_seed(0)
     wm_config = dataclasses.replace(tiny.world_model, reward_dist="twohot", zero_init_reward=True)
@@ -387,9 +389,9 @@ def test_mlp_norm_and_act_reach_actor_critic_and_world_model_heads(tiny: Config)
     config = make_config(
         "tiny",
         overrides={
-            "actor_critic.mlp_norm": True,
+            "actor_critic.mlp_norm": "layer",
             "actor_critic.mlp_act": "silu",
-            "world_model.mlp_norm": True,
+            "world_model.mlp_norm": "layer",
             "world_model.mlp_act": "silu",
             "world_model.pred_discount": True,
         },

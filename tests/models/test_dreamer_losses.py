@@ -6,6 +6,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
+from coworld.distributions import Bernoulli, UnitGaussian, categorical_kl
 from coworld.losses.dreamer import (
     actor_loss,
     critic_loss,
@@ -15,7 +16,6 @@ from coworld.losses.dreamer import (
     lambda_return,
     reward_loss,
 )
-from coworld.models.distributions import Bernoulli, UnitGaussian, categorical_kl
 
 
 def test_lambda_return_matches_hand_computed_recursion() -> None:

@@ -114,7 +114,7 @@ def test_mlp_shape_and_depth() -> None:
 
 
 def test_mlp_norm_centres_and_scales_each_hidden_layer() -> None:
-    mlp = MLP(in_size=7, out_size=2, units=16, layers=2, norm=True, act="silu")
+    mlp = MLP(in_size=7, out_size=2, units=16, layers=2, norm="layer", act="silu")
     hidden = mlp.net[:-1]
     assert [type(m) for m in hidden] == [nn.Linear, nn.LayerNorm, nn.SiLU] * 2
     # Inputs that share a large common part: after the first Linear + LayerNorm, each row has mean 0, std 1.

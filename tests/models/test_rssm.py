@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from coworld.config import Config
-from coworld.models.distributions import exponential_noise
+from coworld.distributions import exponential_noise
 from coworld.models.rssm import RSSM, stack_states
 
 

@@ -10,7 +10,7 @@ import torch
 from torch import nn
 
 from coworld.config import Config, make_config
-from coworld.models.distributions import UnitGaussian
+from coworld.distributions import UnitGaussian
 from coworld.models.networks import ChannelNorm
 from coworld.models.world_model import WorldModel, preprocess_image
 

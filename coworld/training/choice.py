@@ -40,7 +40,7 @@ import numpy as np
 import torch
 
 from coworld import interrupt
-from coworld.agents.coworld import CoWorld, _SourceLearner
+from coworld.agents.coworld import CoWorld, SourceLearner
 from coworld.agents.dreamerv2 import DreamerV2
 from coworld.config import Config, to_dict
 from coworld.envs import task_spec
@@ -49,9 +49,16 @@ from coworld.losses.coworld import closest_source, domain_distance
 from coworld.storage import write_text_atomically
 from coworld.training.checkpoint import load_checkpoint, rng_state, save_checkpoint, set_rng_state
 from coworld.training.logger import Logger
-from coworld.training.online import make_source_trainer, source_replay_writer
+from coworld.training.online import pretrain_source
 from coworld.training.run import seed_everything
-from coworld.training.source_choice import CHOICE_FILE, SourceChoice, candidate_dir, read_choice
+from coworld.training.source_choice import (
+    CHOICE_FILE,
+    DISTANCES_FILE,
+    SourceChoice,
+    candidate_dir,
+    read_choice,
+    read_distances,
+)
 
 WARMUP_KIND = "coworld-warmup"
 SELECT_SEED = 7_000
@@ -95,7 +102,8 @@ def choose_source(
     job: Any, candidates: Sequence[str], *, dataset: Any, device: torch.device, progress: bool = True
 ) -> tuple[SourceChoice, Path]:
     """Warm up the target model, pretrain and measure each candidate, choose (resuming whatever of it a killed run
-    left); returns the choice and the warmed-up target agent's checkpoint, for :func:`train_coworld` to start from.
+    left); returns the choice and the warmed-up target agent's checkpoint, for Algorithm 1 to start from
+    (:func:`coworld.training.coworld.train_coworld`).
     The chosen candidate's pretraining is moved to ``source/`` and ``source_replay.h5`` before this returns."""
     config: Config = job.config
     cfg = config.coworld
@@ -112,8 +120,8 @@ def choose_source(
             raise CheckpointError(f"{warm_path} is not this run's target warm-up; pass --force to start over")
         target = DreamerV2(config=config, action_size=target_size, device=device)
         target.load_state_dict(warm["agent"])
-        measured_path = selection / "distances.json"
-        distances: dict[str, float] = json.loads(measured_path.read_text()) if measured_path.exists() else {}
+        measured_path = run_dir / DISTANCES_FILE
+        distances = read_distances(run_dir, candidates)
         batches = _batches(dataset, config, config.seed + SELECT_SEED, cfg.select_batches)
         for index, name in enumerate(candidates):
             if name in distances:
@@ -177,17 +185,17 @@ def _pretrain(job: Any, name: str, device: torch.device, progress: bool) -> CoWo
     )
     folder = candidate_dir(job.logdir, name)
     folder.mkdir(parents=True, exist_ok=True)
-    writer = source_replay_writer(folder, name, algorithm="coworld", seed=config.seed)
-    with Logger(folder) as logger, writer:
-        trainer = make_source_trainer(
-            _SourceLearner(candidate), name, config=config, logdir=folder, writer=writer, logger=logger
+    with Logger(folder) as logger:
+        pretrain_source(
+            SourceLearner(candidate),
+            name,
+            config=config,
+            logdir=folder,
+            logger=logger,
+            algorithm="coworld",
+            progress=progress,
+            cut_episodes=False,
         )
-        try:
-            trainer.restore()
-            if trainer.steps < config.coworld.pretrain_steps or not trainer.checkpoint_path.exists():
-                trainer.run(max_steps=config.coworld.pretrain_steps, progress=progress, cut_episodes=False)
-        finally:
-            trainer.close()
     return candidate
 
 

@@ -8,7 +8,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from coworld.models.distributions import (
+from coworld.distributions import (
     Bernoulli,
     OneHotCategorical,
     TanhNormal,
@@ -113,7 +113,7 @@ def test_tanh_normal_density_integrates_to_one_and_matches_samples() -> None:
 
 
 def test_symlog_and_symexp_invert_each_other() -> None:
-    from coworld.models.distributions import symexp, symlog
+    from coworld.distributions import symexp, symlog
 
     x = torch.tensor([-1e6, -3.0, -0.5, 0.0, 0.5, 3.0, 1e6], dtype=torch.float64)
     torch.testing.assert_close(symexp(symlog(x)), x)
@@ -121,7 +121,7 @@ def test_symlog_and_symexp_invert_each_other() -> None:
 
 
 def test_twohot_encoding_splits_by_distance_and_its_expected_bin_is_the_symlog() -> None:
-    from coworld.models.distributions import TWOHOT_BINS, TwoHotSymlog, symlog
+    from coworld.distributions import TWOHOT_BINS, TwoHotSymlog, symlog
 
     dist = TwoHotSymlog(torch.zeros(5, TWOHOT_BINS))
     value = torch.tensor([0.0, 0.3, -7.0, 123.0, 1e12])
@@ -137,7 +137,7 @@ def test_twohot_encoding_splits_by_distance_and_its_expected_bin_is_the_symlog()
 
 
 def test_twohot_mean_and_log_prob_known_answers() -> None:
-    from coworld.models.distributions import TWOHOT_BINS, TwoHotSymlog
+    from coworld.distributions import TWOHOT_BINS, TwoHotSymlog
 
     uniform = TwoHotSymlog(torch.zeros(3, TWOHOT_BINS))
     torch.testing.assert_close(uniform.mean, torch.zeros(3), atol=1e-5, rtol=0)  # symmetric bins: symexp(0)

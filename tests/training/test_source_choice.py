@@ -16,14 +16,14 @@ import pytest
 import torch
 from click.testing import CliRunner
 
-from coworld.agents import choice as choice_module
-from coworld.agents.choice import measure_distance
 from coworld.agents.coworld import CoWorld
 from coworld.agents.dreamerv2 import DreamerV2
 from coworld.cli import main
 from coworld.config import make_config
 from coworld.data import open_dataset
 from coworld.losses.coworld import closest_source, domain_distance
+from coworld.training import choice as choice_module
+from coworld.training.choice import measure_distance
 from coworld.training.run import clear_run_dir
 from coworld.training.source_choice import CHOICE_FILE, candidate_dir, read_choice
 from coworld.training.train import check_job, run_job

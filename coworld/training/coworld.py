@@ -1,0 +1,263 @@
+"""Algorithm 1 of the paper: CoWorld's schedule, the source agent online and the target agent offline in turns.
+
+The paper's Algorithm 1, line by line, and where each line runs (the update steps themselves are
+:class:`coworld.agents.coworld.CoWorld`'s)::
+
+    3   Pretrain the source domain agent                        Algorithm1.pretrain_source
+    4   while not converged do                                  Algorithm1.run: coworld.iterations iterations
+    5-12    for k_t = 1 .. K1: draw a target batch,              Algorithm1.target_phase: K1 = coworld.target_updates
+            Eq. 3 world model, Eq. 6 critic, actor               (CoWorld.train_target)
+    14-22   for k_s = 1 .. K2: draw a source batch,              Algorithm1.source_phase: K2 = coworld.source_updates
+            Eqs. 4-5 reward, world model, actor-critic,          (CoWorld.train_source), with source environment
+            append B_S by acting in the source environment       steps at the train ratio between updates
+
+Each iteration draws its target batches from one stream, a sampler seeded by (seed, iteration): the target phase
+takes the first K1, the source phase's relabelling the next ones. The source episodes run on across phase
+boundaries (the pretraining cut and the pauses leave no mark in the source replay). The target agent is
+evaluated after every ``coworld.eval_every``-th iteration.
+
+A checkpoint is written after every phase; its :class:`Progress` says which phase comes next, so a killed run
+resumes at the start of that phase: a run resumed in the source phase skips the stream's first K1 batches, and sees
+the batches an uninterrupted one would have. Stopped while it pretrains, the run resumes the pretraining from its
+last source checkpoint with the source replay cut back to what that checkpoint had seen
+(:meth:`~coworld.training.online.OnlineTrainer.restore`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from coworld import interrupt
+from coworld.agents.coworld import CoWorld, SourceLearner, TargetBatches
+from coworld.config import to_dict
+from coworld.data import open_dataset
+from coworld.data.prefetch import Prefetcher, stop_prefetch
+from coworld.envs import task_spec
+from coworld.errors import CheckpointError
+from coworld.progress import progress_bar
+from coworld.training.checkpoint import CHECKPOINT_NAME, load_checkpoint, rng_state, save_checkpoint, set_rng_state
+from coworld.training.choice import choose_source, restore_warm_target
+from coworld.training.evaluate import evaluate
+from coworld.training.job import TrainJob, parse_sources
+from coworld.training.logger import Logger, Rate
+from coworld.training.online import make_source_trainer, source_replay_writer
+from coworld.training.openloop import log_open_loop
+
+CHECKPOINT_KIND = "coworld"
+CHECKPOINT_KEYS = ("agent", "source", "source_updates", "progress", "rng")
+"""What a CoWorld checkpoint holds beyond its kind (:meth:`Algorithm1.save`)."""
+UNBOUNDED = 2**62
+"""A source phase ends by pausing after K2 updates, never at a step limit."""
+
+
+@dataclass
+class Progress:
+    """Where Algorithm 1 stands, as its checkpoint records it: the iteration, the phase to run next ('pretrain',
+    'target' or 'source') and the last evaluation's mean return."""
+
+    iteration: int = 0
+    phase: str = "pretrain"
+    last_eval: float | None = None
+
+
+def train_coworld(job: TrainJob, *, device: torch.device, resumed: bool, progress: bool = True) -> dict[str, Any]:
+    """Run Algorithm 1 for a checked job; resumes its run folder. Several sources (``--source A,B``): the closest is
+    chosen first (:func:`coworld.training.choice.choose_source`), then Algorithm 1 runs with it."""
+    del resumed  # the run folder says what is there: the checkpoints are read whatever the caller knew
+    dataset = open_dataset(job.dataset)
+    try:
+        warm_target = None
+        candidates = parse_sources(str(job.source))
+        if len(candidates) > 1:
+            choice, warm_target = choose_source(job, candidates, dataset=dataset, device=device, progress=progress)
+            job = dataclasses.replace(job, source=choice.chosen)
+        writer = source_replay_writer(job.logdir, str(job.source), algorithm="coworld", seed=job.config.seed)
+        with Logger(job.logdir) as logger, writer:
+            algorithm = Algorithm1(job, dataset, device=device, logger=logger, writer=writer, progress=progress)
+            try:
+                algorithm.restore(warm_target)
+                return algorithm.run()
+            finally:
+                algorithm.close()
+    finally:
+        dataset.close()
+
+
+class Algorithm1:
+    """One CoWorld run: the two agents, the source agent's online trainer, the target dataset and the schedule."""
+
+    def __init__(
+        self, job: TrainJob, dataset: Any, *, device: torch.device, logger: Logger, writer: Any, progress: bool
+    ) -> None:
+        self.job, self.dataset, self.logger, self.show_progress = job, dataset, logger, progress
+        self.config = job.config
+        self.cfg = job.config.coworld
+        self.agent = CoWorld(
+            config=self.config,
+            action_size=task_spec(job.target).action_size,
+            source_action_size=task_spec(str(job.source)).action_size,
+            device=device,
+        )
+        self.source = make_source_trainer(
+            SourceLearner(self.agent),
+            str(job.source),
+            config=self.config,
+            logdir=job.logdir,
+            writer=writer,
+            logger=logger,
+        )
+        self.state = Progress()
+        self.checkpoint_path = Path(job.logdir) / CHECKPOINT_NAME
+        self.bar: Any = None
+
+    # -- Algorithm 1 --------------------------------------------------------------------------------------------------
+    def run(self) -> dict[str, Any]:
+        cfg = self.cfg
+        if self.state.phase == "pretrain":  # line 3
+            self.pretrain_source()
+        per_iteration = cfg.target_updates + cfg.source_updates
+        done = self.state.iteration * per_iteration + (cfg.target_updates if self.state.phase == "source" else 0)
+        self.bar = progress_bar(
+            total=cfg.iterations * per_iteration,
+            initial=done,
+            desc="coworld",
+            unit="updates",
+            enabled=self.show_progress,
+        )
+        while self.state.iteration < cfg.iterations:  # line 4
+            self.begin_iteration()
+            if self.state.phase == "target":  # lines 5-12
+                self.target_phase()
+                self.state.phase = "source"
+                self.save()
+            self.source_phase()  # lines 14-22
+            if (self.state.iteration + 1) % cfg.eval_every == 0 or self.state.iteration + 1 == cfg.iterations:
+                self.evaluate()
+            self.state = Progress(iteration=self.state.iteration + 1, phase="target", last_eval=self.state.last_eval)
+            self.save()
+        self.bar.close()
+        return {
+            "logdir": str(self.job.logdir),
+            "iterations": self.state.iteration,
+            "target_updates": self.agent.target.updates,
+            "source_steps": self.source.steps,
+            "last_eval_return": self.state.last_eval,
+        }
+
+    def pretrain_source(self) -> None:
+        """The source agent alone, online, for ``coworld.pretrain_steps`` source environment steps."""
+        self.source.run(max_steps=self.cfg.pretrain_steps, progress=self.show_progress, cut_episodes=False)
+        self.state.phase = "target"
+        self.save()
+
+    def begin_iteration(self) -> None:
+        """The iteration's stream of target batches, laid out for the world models (the target phase's own with the
+        source model's pass), made ahead on a background thread where ``train.prefetch`` is on."""
+        cfg, train = self.cfg, self.config.train
+        seed = self.config.seed + 1000 * (self.state.iteration + 1)
+        stop_prefetch(self.agent.target_batches)
+        batches = self.dataset.sampler(train.batch_size, train.seq_len, seed=seed)
+        if self.state.phase == "source":  # resumed inside the source phase: its batches follow the target phase's
+            batches.skip(cfg.target_updates)
+        made = TargetBatches(self.agent, aligned=cfg.target_updates if self.state.phase == "target" else 0, seed=seed)
+        self.agent.target_batches = Prefetcher(batches, made) if train.prefetch else map(made, batches)
+        self._show()
+
+    def target_phase(self) -> None:
+        """K1 target updates on dataset batches (Eq. 3 and Eq. 6)."""
+        k1 = self.cfg.target_updates
+        log_every = max(1, min(self.config.train.log_every, k1))
+        rate = Rate(self.agent.target.updates)
+        for i in range(k1):
+            interrupt.check()
+            metrics = self.agent.train_target(next(self.agent.target_batches))
+            self.bar.update(1)
+            if (i + 1) % log_every == 0 or i + 1 == k1:
+                metrics["target/perf/updates_per_s"] = rate(self.agent.target.updates)
+                self.logger.log(metrics, self.agent.target.updates, unit="target_update")
+
+    def source_phase(self) -> None:
+        """K2 source updates (Eqs. 4-5 on target batches), with source environment steps at the train ratio; the
+        running source episodes carry on into the next phase."""
+        goal = self.source.updates + self.cfg.source_updates
+        counted = self.source.updates
+
+        def pause(trainer: Any) -> bool:
+            nonlocal counted
+            self.bar.update(trainer.updates - counted)
+            counted = trainer.updates
+            return trainer.updates >= goal
+
+        self._show()
+        self.source.run(max_steps=UNBOUNDED, progress=False, should_pause=pause)
+
+    def evaluate(self) -> None:
+        """The target agent in the target environment (returns and the value check), and the open-loop strips."""
+        config, target = self.config, self.job.target
+        result, _ = evaluate(
+            self.agent,
+            target,
+            episodes=config.train.eval_episodes,
+            workers=min(config.train.envs, config.train.eval_episodes),
+            seed=config.seed + 10_000,
+            discount=config.actor_critic.discount,
+        )
+        self.state.last_eval = result.mean
+        step = self.agent.target.updates
+        self.logger.log(result.metrics(), step, unit="target_update")
+        log_open_loop(self.logger, self.agent, self.dataset, step, tag=f"openl/{target}", unit="target_update")
+
+    # -- checkpoints ----------------------------------------------------------------------------------------------
+    def save(self) -> None:
+        save_checkpoint(
+            self.checkpoint_path,
+            {
+                "kind": CHECKPOINT_KIND,
+                "task": self.job.target,
+                "source_task": self.job.source,
+                "config": to_dict(self.config),
+                "agent": self.agent.target.state_dict(),
+                "source": self.agent.source.state_dict(),
+                "source_updates": self.source.updates,
+                "source_act_rng": self.source.act_rng.get_state(),
+                "progress": dataclasses.asdict(self.state),
+                "rng": rng_state(),
+            },
+        )
+
+    def restore(self, warm_target: Path | None) -> None:
+        """Continue from the run folder: the combined checkpoint once past pretraining, else the source's
+        pretraining checkpoint (with a chosen source's warmed-up target agent where the choice made one)."""
+        self.source.restore(rollback=not self.checkpoint_path.exists())
+        if not self.checkpoint_path.exists():
+            if warm_target is not None:
+                restore_warm_target(self.agent, warm_target, self.agent.device)
+            return
+        state = load_checkpoint(self.checkpoint_path, map_location=self.agent.device, keys=CHECKPOINT_KEYS)
+        if state.get("kind") != CHECKPOINT_KIND:
+            raise CheckpointError(f"{self.checkpoint_path} is a {state.get('kind')!r} checkpoint, not a coworld one")
+        self.agent.target.load_state_dict(state["agent"])
+        self.agent.source.load_state_dict(state["source"])
+        self.source.updates = int(state["source_updates"])
+        if "source_act_rng" in state:
+            self.source.act_rng.set_state(state["source_act_rng"])
+        self.state = Progress(**state["progress"])
+        set_rng_state(state["rng"])
+
+    def close(self) -> None:
+        self.source.close()
+        stop_prefetch(self.agent.target_batches)
+
+    def _show(self) -> None:
+        """The progress bar's postfix: iteration, phase and the last evaluation return."""
+        if self.bar is None:
+            return
+        postfix = {"iteration": f"{self.state.iteration + 1}/{self.cfg.iterations}", "phase": self.state.phase}
+        if self.state.last_eval is not None:
+            postfix["eval_return"] = f"{self.state.last_eval:.1f}"
+        self.bar.set_postfix(postfix)

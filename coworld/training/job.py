@@ -1,0 +1,93 @@
+"""A training request, checked: what ``coworld train`` hands to an algorithm's loop, and the algorithm names.
+
+Pure data and names, imported by every loop and by the commands alike; the checks that build a :class:`TrainJob`
+are :func:`coworld.training.train.check_job`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from coworld import envs
+from coworld.config import Config
+from coworld.errors import CoworldError
+
+ALGOS = (
+    "coworld",
+    "dreamerv2",
+    "curl",
+    "curl-cql",
+    "drq-bc",
+    "dreamerv2-penalty",
+    "dreamerv2-finetune",
+    "lompo",
+    "dreamerv2-finetune-ewc",
+)
+MODEL_FREE = ("curl", "curl-cql", "drq-bc")
+NEEDS_SOURCE = ("coworld", "dreamerv2-finetune", "dreamerv2-finetune-ewc")
+"""Algorithms that also learn online in a source task (``--source``); the others learn from the target dataset
+alone."""
+MODEL_BASED = ("coworld", "dreamerv2", "dreamerv2-penalty", "dreamerv2-finetune", "lompo", "dreamerv2-finetune-ewc")
+"""The algorithms that train DreamerV2's world model (and read ``train.backend``)."""
+
+CHECKPOINT_KINDS = {
+    "coworld": "coworld",
+    "dreamerv2": "dreamerv2-offline",
+    "curl": "curl",
+    "curl-cql": "curl-cql",
+    "drq-bc": "drq-bc",
+    "dreamerv2-penalty": "dreamerv2-penalty",
+    "dreamerv2-finetune": "dreamerv2-finetune",
+    "lompo": "lompo",
+    "dreamerv2-finetune-ewc": "dreamerv2-finetune-ewc",
+}
+
+
+def default_logdir(algo: str, source: str | None, target: str, seed: int) -> Path:
+    sources = "+".join(parse_sources(source)) if source else None  # a list of sources is written a+b in names
+    pair = f"{sources}-{target}" if sources and algo in NEEDS_SOURCE else target
+    return Path("runs") / f"{algo}-{pair}-s{seed}"
+
+
+def parse_sources(text: str) -> tuple[str, ...]:
+    """``--source``: one task, or several (CoWorld's automatic choice) separated by ``,`` (or ``+``, as sweep pairs
+    and run folder names write them); each a known task, none twice. One CoworldError line otherwise."""
+    names = [part.strip() for part in text.replace("+", ",").split(",")]
+    if not all(names):
+        raise CoworldError(f"source list {text!r} has an empty name; write TASK or TASK,TASK,... (see `coworld tasks`)")
+    for name in names:
+        envs.task_spec(name)
+    repeated = next((name for i, name in enumerate(names) if name in names[:i]), None)
+    if repeated is not None:
+        raise CoworldError(f"source list {text!r} names {repeated} twice; give each candidate source once")
+    return tuple(names)
+
+
+@dataclass(frozen=True)
+class TrainJob:
+    """A checked request to train."""
+
+    algo: str
+    source: str | None
+    target: str
+    dataset: Path
+    logdir: Path
+    config: Config
+    preset: str
+    resume: bool = False
+    """The run folder already holds this run: training continues from its checkpoint."""
+    start_over: bool = False
+    """``--force``: what training wrote in the run folder is removed first, and the run starts afresh."""
+    warnings: tuple[str, ...] = ()
+    """Things worth telling the user before a long run starts (one line each)."""
+
+    def info(self) -> dict[str, Any]:
+        return {
+            "algo": self.algo,
+            "source": self.source,
+            "target": self.target,
+            "dataset": str(self.dataset),
+            "preset": self.preset,
+        }
