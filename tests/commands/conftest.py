@@ -23,7 +23,7 @@ def make_run():
     from coworld.config import make_config, to_dict
     from coworld.training.checkpoint import save_checkpoint
     from coworld.training.run import prepare_run_dir
-    from coworld.training.train import CHECKPOINT_KINDS, NEEDS_SOURCE
+    from coworld.training.job import CHECKPOINT_KINDS, NEEDS_SOURCE
 
     TARGET = "toy_reach_shifted"
 

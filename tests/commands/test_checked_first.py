@@ -11,7 +11,7 @@ import pytest
 from coworld.budget import check_memory, estimate
 from coworld.config import make_config
 from coworld.errors import ConfigError
-from coworld.training.train import ALGOS
+from coworld.training.job import ALGOS
 
 TARGET = "toy_reach_shifted"
 
