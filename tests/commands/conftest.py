@@ -22,8 +22,8 @@ def make_run():
     from coworld.agents.factory import make_agent
     from coworld.config import make_config, to_dict
     from coworld.training.checkpoint import save_checkpoint
-    from coworld.training.run import prepare_run_dir
     from coworld.training.job import CHECKPOINT_KINDS, NEEDS_SOURCE
+    from coworld.training.run import prepare_run_dir
 
     TARGET = "toy_reach_shifted"
 

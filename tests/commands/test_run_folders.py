@@ -12,8 +12,8 @@ import pytest
 
 from coworld.report import write_report
 from coworld.training.checkpoint import save_checkpoint
-from coworld.training.run import prepare_run_dir
 from coworld.training.job import CHECKPOINT_KINDS
+from coworld.training.run import prepare_run_dir
 from coworld.training.train import check_job
 
 TARGET = "toy_reach_shifted"
