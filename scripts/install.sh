@@ -4,7 +4,7 @@
 #   - a virtual environment with torch 2.13.0 (CPU build unless a torch is already in the venv),
 #     the pinned simulator stack and coworld itself in editable mode with its dev extras.
 # Environment: PYTHON (interpreter for the venv, default python3), VENV (default .venv),
-# TORCH_PIP_ARGS (extra pip arguments for the torch install).
+# TORCH_PIP_ARGS (extra pip arguments for the torch install), APT_LOCK_WAIT (seconds to wait for apt's locks, 600).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PYTHON=${PYTHON:-python3}
@@ -12,14 +12,40 @@ VENV=${VENV:-.venv}
 
 # 1. Debian packages for EGL rendering (libEGL + Mesa's llvmpipe), and tcmalloc, the memory allocator the coworld
 #    command preloads (coworld/allocator.py).
+#    Another apt-get or dpkg (an unattended upgrade, a second install) may hold apt's locks: apt-get waits up to
+#    APT_LOCK_WAIT seconds (default 600) for dpkg's lock (DPkg::Lock::Timeout); it does not wait for the package
+#    lists' lock of `apt-get update` (it stops with "Could not get lock", exit code 100), so apt_get retries that
+#    every 5 s for as long.
+APT_LOCK_WAIT=${APT_LOCK_WAIT:-600}
+apt_get() {
+  local lock log waited=0
+  log=$(mktemp)
+  until DEBIAN_FRONTEND=noninteractive apt-get -qq -o "DPkg::Lock::Timeout=$APT_LOCK_WAIT" "$@" >"$log" 2>&1; do
+    if ! grep -q "Could not get lock" "$log" || ((waited >= APT_LOCK_WAIT)); then
+      cat "$log" >&2
+      rm -f "$log"
+      ((waited == 0)) || echo "install: apt-get $1: the lock was still held after $waited s (APT_LOCK_WAIT)" >&2
+      return 1
+    fi
+    if ((waited == 0)); then
+      lock=$(sed -n 's/.*Could not get lock \([^ ]*[^ .]\).*/\1/p' "$log" | head -n 1)
+      echo "install: another apt-get or dpkg holds $lock; waiting up to $APT_LOCK_WAIT s"
+    fi
+    sleep 5
+    waited=$((waited + 5))
+  done
+  rm -f "$log"
+}
+
 need=()
 for pkg in libegl1 libgl1 libegl-mesa0 libgl1-mesa-dri libglvnd0 libtcmalloc-minimal4; do
   dpkg -s "$pkg" >/dev/null 2>&1 || need+=("$pkg")
 done
 if ((${#need[@]})); then
   if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
-    echo "install: apt-get install ${need[*]}"
-    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "${need[@]}" >/dev/null
+    echo "install: apt-get install ${need[*]} (waiting up to $APT_LOCK_WAIT s for another apt-get or dpkg to finish)"
+    apt_get update
+    apt_get install -y "${need[@]}"
   else
     echo "install: missing Debian packages for rendering and tcmalloc: ${need[*]} (run: sudo apt-get install ${need[*]})" >&2
     exit 1
