@@ -319,13 +319,29 @@ class CoWorldConfig:
     reward_relabel: bool = True
     """Eqs. 4-5: train the source reward head on target sequences with relabelled rewards."""
     k: Annotated[float, UNIT] = 0.2
-    """Mixing weight of Eq. 5: r = k * r_S_pred + (1 - k) * r_T (Table 3)."""
+    """Eq. 4's mixing weight (Table 3: 0.2), read as ``relabel`` says."""
+    relabel: Annotated[str, OneOf(("table3", "later"))] = "table3"
+    """How Eq. 4 reads ``k``: 'table3' (the paper text: ``r = k * r_S_pred + (1 - k) * r_T``) or 'later' (the later
+    paper and the release: ``r = (1 - k) * r_S_pred + k * r_T``)."""
+    reward_mix: Annotated[str, OneOf(("sum", "eta"))] = "sum"
+    """How Eq. 5 joins its source-batch and target-batch terms: 'sum' (the paper text: ``L_S + L_T``) or 'eta' (the
+    later paper and the release: ``eta * L_S + (1 - eta) * L_T``, both at ``world_model.reward_scale``)."""
+    eta_start: Annotated[float, UNIT] = 1.0
+    """Eq. 5's ``eta`` at the first source update after pretraining (``reward_mix='eta'``)."""
+    eta_end: Annotated[float, UNIT] = 1.0
+    """Eq. 5's ``eta`` at the last; it moves linearly from ``eta_start`` over the run's ``iterations x
+    source_updates`` source updates (the later paper: from 1 to 0.1; the release: fixed at 0.9875)."""
     value_reg: bool = True
     """Eq. 6: max-min value regularisation of the target critic by the source critic."""
     alpha: Annotated[float, NON_NEGATIVE] = 0.2
     """Weight of the value regulariser (Table 3)."""
     zeta: Annotated[float, POSITIVE] = 1.0
     """Rescales target values against source values in Eq. 6."""
+    cap_critic: Annotated[str, OneOf(("source", "target_policy"))] = "source"
+    """The critic that caps the target critic in Eq. 6: 'source' (both papers and the release: the source agent's
+    critic, the value of the source policy) or 'target_policy' (beyond the papers: a critic in the source agent
+    that learns the value of the target actor's behaviour imagined in the source world model, scored by the source
+    reward head; docs/algorithms.md, "When the cap binds")."""
     eval_every: Annotated[int, AT_LEAST_1] = 1
     """Iterations between evaluations of the target agent in the target environment."""
     select_batches: Annotated[int, Range(1, 10_000)] = 8
@@ -695,11 +711,77 @@ PRESETS: dict[str, dict[str, Any]] = {
 }
 
 
+SETTINGS: dict[str, dict[str, Any]] = {
+    # The paper text's Table 3: the defaults.
+    "table3": {},
+    # The later paper (arXiv 2305.15260 v4, NeurIPS 2024), its Table 8 for DMC: beta2 1.5, k 0.9 in its Eq. 4
+    # ((1 - k) * pred + k * r_T), alpha 1, no zeta; Eq. 5 weighted by an eta falling from 1 to 0.1; Eq. 3 on
+    # softmaxed encoder embeddings.
+    "later-dmc": {
+        "coworld.beta2": 1.5,
+        "coworld.k": 0.9,
+        "coworld.relabel": "later",
+        "coworld.alpha": 1.0,
+        "coworld.zeta": 1.0,
+        "coworld.reward_mix": "eta",
+        "coworld.eta_start": 1.0,
+        "coworld.eta_end": 0.1,
+        "coworld.align_on": "embedding",
+    },
+    # The same paper's Table 8 for Meta-World (and its RoboDesk targets): beta2 1, k 0.3, alpha 2.
+    "later-metaworld": {
+        "coworld.beta2": 1.0,
+        "coworld.k": 0.3,
+        "coworld.relabel": "later",
+        "coworld.alpha": 2.0,
+        "coworld.zeta": 1.0,
+        "coworld.reward_mix": "eta",
+        "coworld.eta_start": 1.0,
+        "coworld.eta_end": 0.1,
+        "coworld.align_on": "embedding",
+    },
+    # The authors' release (qiwang067/CoWorld at 8bc8aaa): co_configs.yaml's beta_2 1, reward_k 0.3, alpha 1.5 in
+    # every suite; Eq. 4 as (1 - k) * pred + k * r_T (models.py:108); Eq. 6 without zeta; Eq. 5's eta = max(1 - step
+    # / 2e5, 0.2) with a step fixed when the model is built, after the 2,500 prefill steps: 0.9875 throughout.
+    "release": {
+        "coworld.beta2": 1.0,
+        "coworld.k": 0.3,
+        "coworld.relabel": "later",
+        "coworld.alpha": 1.5,
+        "coworld.zeta": 1.0,
+        "coworld.reward_mix": "eta",
+        "coworld.eta_start": 0.9875,
+        "coworld.eta_end": 0.9875,
+        "coworld.align_on": "embedding",
+    },
+}
+"""CoWorld's settings as each version of the method gives them, chosen with a preset as ``SIZE+SETTINGS`` (e.g.
+``cpu+later-dmc``): the sizes come from the preset, the terms' weights and forms from these."""
+
+
+def settings_overrides(name: str) -> tuple[str, ...]:
+    """A group of :data:`SETTINGS` as ``key=value`` overrides (a sweep variant's ``--set``)."""
+    return tuple(f"{key}={value}" for key, value in SETTINGS[name].items())
+
+
+def split_preset(name: str) -> tuple[str, str]:
+    """``'cpu+later-dmc'`` -> ``('cpu', 'later-dmc')``; ``'cpu'`` -> ``('cpu', 'table3')``. One ConfigError line for
+    a name that is neither."""
+    size, _, settings = name.partition("+")
+    settings = settings or "table3"
+    if size not in PRESETS or settings not in SETTINGS:
+        raise ConfigError(
+            f"unknown preset {name!r}; choose one of: {', '.join(PRESETS)}, optionally followed by +SETTINGS, one of"
+            f" {', '.join(SETTINGS)} (e.g. cpu+later-dmc)"
+        )
+    return size, settings
+
+
 def make_config(preset: str = "paper", overrides: Iterable[str] | Mapping[str, Any] = ()) -> Config:
-    """Build a config from a preset name plus ``key=value`` strings or a ``{dotted.key: value}`` mapping."""
-    if preset not in PRESETS:
-        raise ConfigError(f"unknown preset {preset!r}; choose one of: {', '.join(PRESETS)}")
-    config = apply_overrides(Config(), PRESETS[preset])
+    """Build a config from a preset (``SIZE`` or ``SIZE+SETTINGS``: :data:`PRESETS`, :data:`SETTINGS`) plus
+    ``key=value`` strings or a ``{dotted.key: value}`` mapping."""
+    size, settings = split_preset(preset)
+    config = apply_overrides(Config(), {**PRESETS[size], **SETTINGS[settings]})
     if isinstance(overrides, Mapping):
         config = apply_overrides(config, overrides)
     else:

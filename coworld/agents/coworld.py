@@ -8,9 +8,12 @@ Both agents are DreamerV2 (:class:`coworld.agents.dreamerv2.DreamerV2`). The thr
   model does not change during a target phase, so :class:`TargetBatches` makes that pass with the batch, ahead on
   the prefetch thread where ``train.prefetch`` is on;
 * target critic step (lines 10-11, Eq. 6): the critic's loss is :func:`regularised_critic_loss` on the target
-  agent's imagined states, ``v_S`` being the source critic fed the target features;
+  agent's imagined states, ``v_S`` being the source critic fed the target features (with
+  ``coworld.cap_critic='target_policy'``, a critic of the target actor in the source world model instead:
+  :class:`~coworld.agents.policy_value.PolicyValue`);
 * source world-model step (lines 17-20, Eqs. 4-5): the source model is also run over a target batch and its
-  reward head regresses ``k * sg(r_S_pred) + (1 - k) * r_T``.
+  reward head regresses Eq. 4's relabelled reward (:func:`relabel_reward`), the two batches' terms joined as
+  ``coworld.reward_mix`` says (:func:`reward_mix_eta`).
 """
 
 from __future__ import annotations
@@ -23,18 +26,23 @@ import torch
 from torch import Tensor
 
 from coworld.agents.dreamerv2 import DreamerV2
+from coworld.agents.policy_value import PolicyValue
 from coworld.config import Config
 from coworld.losses.coworld import (
     alignment_term,
     max_min_active,
     regularised_critic_loss,
     relabel_reward,
+    reward_mix_eta,
     source_reward_loss_on_target,
     value_regulariser,
 )
+from coworld.losses.dreamer import reward_loss
 
 ALIGN_SOURCE = "align_source"
 """The key of a target batch's :meth:`CoWorld.source_alignment`, where :class:`TargetBatches` made it."""
+PROBE_ZETAS = (2.0, 3.0, 5.0, 10.0)
+"""The ``zeta`` at which each target update also measures where Eq. 6's term would bind (without effect)."""
 
 
 def source_model_action_size(source: int, target: int) -> int:
@@ -77,8 +85,20 @@ class CoWorld:
         )
         self.target = DreamerV2(config=config, action_size=action_size, device=device)
         self.device = self.target.device
+        self.policy_value: PolicyValue | None = None
+        """The target-policy critic that caps the target critic where ``coworld.cap_critic='target_policy'``."""
+        if config.coworld.cap_critic == "target_policy":
+            with torch.random.fork_rng(devices=[]):  # drawn off the record: both agents train as they would without
+                torch.manual_seed(config.seed)
+                feat_size = self.source.world_model.feat_size
+                self.policy_value = PolicyValue(
+                    config=config, feat_size=feat_size, action_size=action_size, device=self.device
+                )
         self.target_batches: Iterator[dict[str, Any]] | None = None
         """Target-dataset batches for the source agent's relabelled-reward term (set by the schedule)."""
+        self.relabelled = 0
+        """Source updates made with a target batch (Eqs. 4-5) so far: what Eq. 5's ``eta`` follows (set by the
+        schedule on resume)."""
 
     # -- the target agent's update (Alg. 1 lines 7-11) ------------------------------------------------------------
     def train_target(self, batch: Mapping[str, Any]) -> dict[str, float]:
@@ -105,11 +125,17 @@ class CoWorld:
         self.target.updates += 1
         return {f"target/{key}": value for key, value in metrics.items()}
 
+    @property
+    def cap_critic(self) -> Any:
+        """The critic Eq. 6 caps the target critic with (``coworld.cap_critic``)."""
+        return self.source.actor_critic.critic if self.policy_value is None else self.policy_value.critic
+
     def _capped_critic_objective(self) -> Any:
-        """The target critic's loss, Eq. 6 (:func:`regularised_critic_loss`), capped by the source critic, and what
-        it logs: the two critics' mean values and the share of states where the max-min term binds."""
+        """The target critic's loss, Eq. 6 (:func:`regularised_critic_loss`), capped by :attr:`cap_critic`, and what
+        it logs: the two critics' mean values, the share of states where the max-min term binds, and where it would
+        bind at each of :data:`PROBE_ZETAS`."""
         cfg = self.config.coworld
-        source_critic = self.source.actor_critic.critic
+        source_critic = self.cap_critic
 
         def objective(feat: Tensor, value: Any, target: Tensor, weight: Tensor) -> tuple[Tensor, dict[str, Tensor]]:
             with torch.no_grad():
@@ -123,6 +149,8 @@ class CoWorld:
                     "coworld/source_value": source_value.mean(),
                     "coworld/maxmin_active": max_min_active(mean, source_value, cfg.zeta).float().mean(),
                 }
+                for zeta in PROBE_ZETAS:
+                    metrics[f"coworld/binds_zeta_{zeta:g}"] = max_min_active(mean, source_value, zeta).float().mean()
             return loss, metrics
 
         return objective
@@ -144,22 +172,45 @@ class CoWorld:
         """One source world-model step (with Eqs. 4-5 on a target batch) and one source actor-critic step (once the
         source agent has made ``train.actor_warmup`` updates, pretraining included)."""
         cfg = self.config.coworld
-        extra = None
+        extra, seen = None, {}
         if cfg.reward_relabel and self.target_batches is not None:
             target_batch = self.source.to_batch(next(self.target_batches))
 
-            def extra(_: dict[str, Tensor], __: dict[str, Any]) -> dict[str, Tensor]:
+            def extra(source_batch: dict[str, Tensor], aux: dict[str, Any]) -> dict[str, Tensor]:
                 post, _, _ = self.source.model_path.observe(target_batch)
                 head = self.source.world_model.reward_head(self.source.world_model.features(post))
-                label = relabel_reward(head.mean, target_batch["reward"].float(), cfg.k)
-                return {"relabel": source_reward_loss_on_target(head, label).mean()}
+                label = relabel_reward(head.mean, target_batch["reward"].float(), cfg.k, cfg.relabel)
+                seen["relabel"] = target_term = source_reward_loss_on_target(head, label).mean()
+                if cfg.reward_mix == "sum":  # the paper text: L_S + L_T
+                    return {"relabel": target_term}
+                # eta * L_S + (1 - eta) * L_T at the reward scale: the world model's loss holds scale * L_S already
+                total = cfg.iterations * cfg.source_updates
+                seen["eta"] = eta = reward_mix_eta(self.relabelled, total, cfg.eta_start, cfg.eta_end)
+                scale = self.config.world_model.reward_scale
+                source_term = reward_loss(aux["reward_head"], source_batch["reward"].float()).mean()
+                return {"relabel": (1.0 - eta) * scale * target_term, "eta_mix": (eta - 1.0) * scale * source_term}
 
         batch_t = self.source.to_batch(batch)
         metrics, post = self.source.train_world_model(batch_t, extra)
-        if "wm/relabel" in metrics:
-            metrics["coworld/relabel_reward_loss"] = metrics.pop("wm/relabel")
+        if seen:
+            metrics.pop("wm/relabel")
+            metrics.pop("wm/eta_mix", None)
+            metrics.update(
+                {f"coworld/{'relabel_reward_loss' if k == 'relabel' else k}": float(v) for k, v in seen.items()}
+            )
+            self.relabelled += 1
         if self.source.updates >= self.config.train.actor_warmup:
             metrics.update(self.source.train_actor_critic(post, is_terminal=batch_t["is_terminal"]))
+            if self.policy_value is not None:
+                metrics.update(
+                    self.policy_value.train(
+                        self.source.world_model,
+                        self.target.actor_critic.actor,
+                        post,
+                        is_terminal=batch_t["is_terminal"],
+                        step=self.source.updates,
+                    )
+                )
         self.source.updates += 1
         return {f"source/{key}": value for key, value in metrics.items()}
 
@@ -170,62 +221,22 @@ class CoWorld:
     def value(self, state: Any) -> np.ndarray:
         return self.target.value(state)
 
+    def source_value(self, state: Any) -> np.ndarray:
+        """:attr:`cap_critic`'s estimate ``(N,)`` for the target agent's latent states (``state`` from
+        :meth:`policy`): what Eq. 6's cap says the target agent's states are worth (the value check's third line)."""
+        latent, _ = state
+        with torch.no_grad():
+            value = self.cap_critic(self.target.world_model.features(latent)).mean
+        return value.float().cpu().numpy()
+
     def state_dict(self) -> dict[str, Any]:
-        return {"target": self.target.state_dict(), "source": self.source.state_dict()}
+        state = {"target": self.target.state_dict(), "source": self.source.state_dict()}
+        if self.policy_value is not None:
+            state["policy_value"] = self.policy_value.state_dict()
+        return state
 
     def load_state_dict(self, state: Mapping[str, Any]) -> None:
         self.target.load_state_dict(state["target"])
         self.source.load_state_dict(state["source"])
-
-
-class TargetBatches:
-    """The target dataset's batches as CoWorld's updates read them (a ``prepare`` for
-    :class:`~coworld.data.prefetch.Prefetcher`): each :meth:`DreamerV2.prepare`-d by the target agent, and the first
-    ``aligned`` with their :meth:`CoWorld.source_alignment` under :data:`ALIGN_SOURCE` (where ``coworld.align`` is on).
-
-    A target phase's batches can carry the source model's pass because the source model does not change until
-    the phase ends (its ``aligned`` batches are the phase's own); made ahead, the pass runs on the prefetch
-    thread while the target update before runs. Its latent samples draw from a generator of their own, seeded
-    with ``seed``, so a run makes the same passes with prefetching on or off, and a resumed phase those of an
-    uninterrupted one.
-    """
-
-    def __init__(self, coworld: CoWorld, *, aligned: int, seed: int) -> None:
-        self.coworld = coworld
-        self.aligned = aligned if coworld.config.coworld.align else 0
-        self.generator = torch.Generator(coworld.device).manual_seed(seed)
-
-    def __call__(self, batch: Mapping[str, np.ndarray]) -> dict[str, Tensor]:
-        batch_t = self.coworld.target.prepare(batch)
-        if self.aligned > 0:
-            self.aligned -= 1
-            batch_t = {**batch_t, ALIGN_SOURCE: self.coworld.source_alignment(batch_t, self.generator)}
-        return batch_t
-
-
-class SourceLearner:
-    """What the online trainer drives in CoWorld's source phases: the source policy, CoWorld's source update, the
-    source agent's state."""
-
-    def __init__(self, coworld: CoWorld) -> None:
-        self.coworld = coworld
-        self.device = coworld.device
-
-    def policy(self, *args: Any, **kwargs: Any) -> Any:
-        return self.coworld.source.policy(*args, **kwargs)
-
-    def policy_copy(self) -> Any:
-        return self.coworld.source.policy_copy()
-
-    def value(self, state: Any) -> np.ndarray:
-        return self.coworld.source.value(state)
-
-    def train(self, batch: Mapping[str, np.ndarray]) -> dict[str, float]:
-        # the online trainer adds its own "source/" prefix (to these and to its eval/ and perf/ metrics)
-        return {key.removeprefix("source/"): value for key, value in self.coworld.train_source(batch).items()}
-
-    def state_dict(self) -> dict[str, Any]:
-        return self.coworld.source.state_dict()
-
-    def load_state_dict(self, state: Mapping[str, Any]) -> None:
-        self.coworld.source.load_state_dict(state)
+        if self.policy_value is not None:
+            self.policy_value.load_state_dict(state["policy_value"])

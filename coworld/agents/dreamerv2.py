@@ -104,11 +104,11 @@ class DreamerV2:
         self.world_model.to(self.device)
         self.actor_critic.to(self.device)
         wm, ac = config.world_model, config.actor_critic
-        self.wm_opt = _optimizer(self.world_model.parameters(), lr=wm.lr, eps=wm.eps, decay=wm.weight_decay)
-        self.actor_opt = _optimizer(
+        self.wm_opt = make_optimizer(self.world_model.parameters(), lr=wm.lr, eps=wm.eps, decay=wm.weight_decay)
+        self.actor_opt = make_optimizer(
             self.actor_critic.actor.parameters(), lr=ac.actor_lr, eps=ac.eps, decay=ac.weight_decay
         )
-        self.critic_opt = _optimizer(
+        self.critic_opt = make_optimizer(
             self.actor_critic.critic.parameters(), lr=ac.critic_lr, eps=ac.eps, decay=ac.weight_decay
         )
         self.updates = 0
@@ -392,7 +392,7 @@ class PolicyCopy:
         return self.copy.policy(*args, **kwargs)
 
 
-def _optimizer(params: Any, *, lr: float, eps: float, decay: float) -> torch.optim.AdamW:
+def make_optimizer(params: Any, *, lr: float, eps: float, decay: float) -> torch.optim.AdamW:
     """Adam with DreamerV2's weight decay: every step first scales each weight by ``1 - decay``, independent of
     the learning rate. AdamW scales by ``1 - lr * weight_decay`` before its Adam step, so ``weight_decay =
     decay / lr`` is exactly that step. PyTorch's fused kernel (CPU and CUDA) takes the same step in one pass over

@@ -24,7 +24,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from coworld.agents.dreamerv2 import DreamerV2, _optimizer
+from coworld.agents.dreamerv2 import DreamerV2, make_optimizer
 from coworld.config import Config
 from coworld.losses.penalty import head_loss, mean_disagreement, penalised_reward
 from coworld.models.ensemble import DynamicsEnsemble
@@ -52,7 +52,7 @@ class PenaltyDreamerV2(DreamerV2):
         self.ensemble = DynamicsEnsemble(
             size=size, deter=wm.deter, hidden=wm.hidden, stoch=wm.stoch, classes=wm.classes
         ).to(self.device)
-        self.ensemble_opt = _optimizer(self.ensemble.parameters(), lr=wm.lr, eps=wm.eps, decay=wm.weight_decay)
+        self.ensemble_opt = make_optimizer(self.ensemble.parameters(), lr=wm.lr, eps=wm.eps, decay=wm.weight_decay)
 
     @property
     def model_phase(self) -> bool:

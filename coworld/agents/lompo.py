@@ -29,7 +29,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from coworld.agents.dreamerv2 import _optimizer, _to_floats
+from coworld.agents.dreamerv2 import _to_floats, make_optimizer
 from coworld.agents.dreamerv2_penalty import PenaltyDreamerV2
 from coworld.config import Config
 from coworld.distributions import OneHotCategorical
@@ -69,8 +69,8 @@ class Lompo(PenaltyDreamerV2):
         self.actor_critic = LatentActorCritic(
             config=c, feat_size=self.world_model.feat_size, action_size=action_size
         ).to(self.device)
-        self.actor_opt = _optimizer(self.actor_critic.actor.parameters(), lr=c.actor_lr, eps=ADAM_EPS, decay=0.0)
-        self.critic_opt = _optimizer(self.actor_critic.critic.parameters(), lr=c.critic_lr, eps=ADAM_EPS, decay=0.0)
+        self.actor_opt = make_optimizer(self.actor_critic.actor.parameters(), lr=c.actor_lr, eps=ADAM_EPS, decay=0.0)
+        self.critic_opt = make_optimizer(self.actor_critic.critic.parameters(), lr=c.critic_lr, eps=ADAM_EPS, decay=0.0)
 
     def train(self, batch: Mapping[str, np.ndarray | Tensor]) -> dict[str, float]:
         """One update of the current phase: world model and heads, or the latent actor-critic."""

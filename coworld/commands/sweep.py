@@ -30,7 +30,7 @@ from coworld.training.train import ALGOS
 )
 @click.option("--algos", help=f"Comma-separated algorithms: {','.join(ALGOS)}.")
 @click.option("--seeds", type=count_type(1, MAX_SEEDS), help="Seeds 0..N-1 of every run.")
-@click.option("--preset", help="Config preset of every run: paper, cpu or tiny.")
+@click.option("--preset", help="Config preset of every run: paper, cpu or tiny, optionally +SETTINGS (see train).")
 @click.option(
     "--set", "overrides", multiple=True, metavar="KEY=VALUE", help="Config override of every run (repeatable)."
 )

@@ -34,7 +34,8 @@ RESUME = "rerun the same command to resume"
     "--preset",
     default="paper",
     show_default=True,
-    help="paper (Table 3, GPU), cpu (learning on 2 cores) or tiny (CPU minutes, tests).",
+    help="paper (Table 3, GPU), cpu (learning on 2 cores) or tiny (CPU minutes, tests); +SETTINGS picks a version of"
+    " CoWorld's settings: +table3 (the default), +later-dmc, +later-metaworld or +release (`coworld config`).",
 )
 @click.option(
     "--logdir",

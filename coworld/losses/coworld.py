@@ -8,7 +8,8 @@ per-element arithmetic here can be held side by side with the paper:
 * Eq. 3, representation alignment: :func:`alignment_loss` (categorical posteriors, the paper's reading) and
   :func:`embedding_alignment_loss` (conv embeddings, the authors' public release), reduced by
   :func:`alignment_term`.
-* Eqs. 4-5, target-modulated source reward: :func:`relabel_reward` and :func:`source_reward_loss_on_target`.
+* Eqs. 4-5, target-modulated source reward: :func:`relabel_reward`, :func:`source_reward_loss_on_target` and
+  :func:`reward_mix_eta`.
 * Eq. 6, max-min value regularisation: :func:`value_regulariser`, :func:`max_min_active`, and the critic
   objective the target agent trains with, :func:`regularised_critic_loss`.
 * Several candidate sources (the later paper's multi-source CoWorld): :func:`domain_distance` (Eq. 3's KL as a
@@ -39,9 +40,14 @@ __all__ = [
     "max_min_active",
     "regularised_critic_loss",
     "relabel_reward",
+    "reward_mix_eta",
     "source_reward_loss_on_target",
     "value_regulariser",
 ]
+
+
+RELABEL_FORMS = ("table3", "later")
+"""The two ways the versions of the method write Eq. 4 (:func:`relabel_reward`)."""
 
 
 def _check_same_shape(**tensors: Tensor) -> None:
@@ -175,32 +181,51 @@ def closest_source(distances: Mapping[str, float]) -> str:
 # --------------------------------------------------------------------------------------------------------------
 
 
-def relabel_reward(source_pred: Tensor, target_reward: Tensor, k: float) -> Tensor:
+def relabel_reward(source_pred: Tensor, target_reward: Tensor, k: float, form: str = "table3") -> Tensor:
     """Target-modulated source reward of Eq. 4, for target-dataset sequences.
 
-    Paper, Eq. 4 (the target-batch case)::
+    Paper text, Eq. 4 (the target-batch case), ``form='table3'``::
 
         r^(S)_t = k * r^(S)_phi'(h^(T)_t, z^(T)_t) + (1 - k) * r^(T)_t
 
-    where ``h^(T), z^(T)`` are the source world model's states on the target sequence. The prediction is a
-    label, not a path for gradient, so ``source_pred`` is detached; so is the result unless the caller passes a
-    ``target_reward`` that requires grad (dataset rewards never do).
+    where ``h^(T), z^(T)`` are the source world model's states on the target sequence (Table 3: ``k = 0.2``). The
+    later paper (v4) and the release write it the other way round, ``form='later'``::
 
-    Release difference: the release writes ``(1 - k) * pred + k * r_T``; pass ``k = 1 - reward_k`` to reproduce
-    a release run with ``reward_k``. Table 3 of the paper gives ``k = 0.2``.
+        r^(S)_t = (1 - k) * r^(S)_phi'(h^(T)_t, z^(T)_t) + k * r^(T)_t
+
+    (the later paper's Table 8: ``k = 0.9`` for DMC, 0.3 for Meta-World; the release's ``reward_k``: 0.3). The
+    prediction is a label, not a path for gradient, so ``source_pred`` is detached; so is the result unless the
+    caller passes a ``target_reward`` that requires grad (dataset rewards never do).
 
     Args:
         source_pred: ``(B, T)`` reward the source reward head predicts on the target sequence (its mean/mode).
         target_reward: ``(B, T)`` rewards stored in the target dataset.
-        k: weight of the source prediction, in ``[0, 1]``; ``k = 0`` gives the target reward.
+        k: the mixing weight, in ``[0, 1]``.
+        form: 'table3' or 'later', as above.
 
     Returns:
         ``(B, T)`` relabelled rewards, the regression target of :func:`source_reward_loss_on_target`.
     """
     if not 0.0 <= k <= 1.0:
         raise ValueError(f"k must be in [0, 1], got {k}")
+    if form not in RELABEL_FORMS:
+        raise ValueError(f"form must be one of {', '.join(RELABEL_FORMS)}, got {form!r}")
     _check_same_shape(source_pred=source_pred, target_reward=target_reward)
-    return k * source_pred.detach() + (1.0 - k) * target_reward
+    on_pred = k if form == "table3" else 1.0 - k
+    return on_pred * source_pred.detach() + (1.0 - on_pred) * target_reward
+
+
+def reward_mix_eta(done: int, total: int, start: float, end: float) -> float:
+    """Eq. 5's ``eta`` after ``done`` of the run's ``total`` source updates (``coworld.reward_mix='eta'``)::
+
+        L_r = eta * L_r(B^(S)) + (1 - eta) * L_r(B^(T)),    eta = start + (end - start) * min(1, done / total)
+
+    The later paper lets ``eta`` fall from 1 to 0.1 (how fast it does not say: here linearly over the run); the
+    release computes ``max(1 - step / 2e5, 0.2)`` from a step it never advances, so ``start = end`` there.
+    """
+    if total <= 0:
+        return end
+    return start + (end - start) * min(1.0, max(0, done) / total)
 
 
 def source_reward_loss_on_target(pred: UnitGaussian | TwoHotSymlog | Tensor, relabelled: Tensor) -> Tensor:
@@ -219,9 +244,8 @@ def source_reward_loss_on_target(pred: UnitGaussian | TwoHotSymlog | Tensor, rel
     the loss equals ``0.5 * (1 - k)^2 * (pred - r_T)^2``: ``k`` damps how fast the source head moves toward the
     target reward rather than fixing a blended target.
 
-    Release difference: the release mixes this term with the source-batch term as ``(1 - eta) * target +
-    eta * source``, ``eta = max(1 - step / 2e5, 0.2)``, with a step counter that never advances; the paper sums
-    the two expectations with weight 1 each. The weighting is the caller's.
+    The paper text sums the two expectations with weight 1 each; the later paper and the release weigh them by
+    ``eta`` (:func:`reward_mix_eta`). The weighting is the caller's.
 
     It is the world model's own :func:`~coworld.losses.dreamer.reward_loss` with the label held constant, so a
     :class:`TwoHotSymlog` head (``world_model.reward_dist='twohot'``) gets its cross-entropy against the relabelled

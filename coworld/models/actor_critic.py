@@ -176,12 +176,19 @@ class ActorCritic(nn.Module):
         self.updates += 1
 
     def imagine(
-        self, world_model: WorldModel, start: State, horizon: int | None = None, is_terminal: Tensor | None = None
+        self,
+        world_model: WorldModel,
+        start: State,
+        horizon: int | None = None,
+        is_terminal: Tensor | None = None,
+        actor: Actor | None = None,
     ) -> dict[str, Tensor | State]:
         """Roll the world model's prior forward ``horizon`` steps (default ``config.horizon``) from ``start``.
 
         ``start``: RSSM states with batch ``(N,)`` (see :func:`flatten_states`); they are detached here.
         ``is_terminal (N,)``, if given, replaces the predicted continuation of the start states by the true one.
+        ``actor``: the policy that acts in imagination, this one's own when None (another agent's: CoWorld's
+        target-policy critic, :class:`coworld.agents.policy_value.PolicyValue`).
         Returns ``traj`` with ``'feat' (H+1, N, F)``, ``'action' (H+1, N, A)`` (zeros at 0), ``'state'``
         (states with batch ``(H+1, N)``), ``'reward' (H+1, N)`` (the reward head's mean),
         ``'continuation' (H+1, N)`` (``gamma * P(continue)``), ``'weight' (H+1, N)`` (detached
@@ -191,6 +198,7 @@ class ActorCritic(nn.Module):
         gradient.
         """
         horizon = self.config.horizon if horizon is None else horizon
+        actor = self.actor if actor is None else actor
         state = {key: value.detach() for key, value in start.items()}
         n = state["deter"].shape[0]
         reparam = self.config.actor_grad == "dynamics"
@@ -199,8 +207,8 @@ class ActorCritic(nn.Module):
         actions = [torch.zeros(n, self.action_size, device=feats[0].device, dtype=feats[0].dtype)]
         actor_outs: list[Tensor] = []
         for _ in range(horizon):
-            actor_outs.append(self.actor.mlp(feats[-1].detach()))
-            policy = self.actor.distribution(actor_outs[-1])
+            actor_outs.append(actor.mlp(feats[-1].detach()))
+            policy = actor.distribution(actor_outs[-1])
             action = policy.rsample() if reparam else policy.sample()
             if self.config.actor_absmax:
                 action = action * action.detach().abs().clamp_min(1.0).reciprocal()

@@ -6,8 +6,9 @@
   (``source/coworld/relabel_reward_loss``), first and last;
 * Eq. 6, the max-min value regulariser: how often it binds (``target/coworld/maxmin_active``, the fraction of the
   target agent's imagined states where ``zeta * v_T > v_S``, so the source critic caps the target critic), over the
-  whole run and at the last log; and the two critics' mean values on those states (``target/coworld/target_value``,
-  ``target/coworld/source_value``).
+  whole run and at the last log; where it would bind at ``zeta`` 2, 3, 5 and 10 (``target/coworld/binds_zeta_Z``,
+  measured without effect), over the whole run; and the two critics' mean values on those states
+  (``target/coworld/target_value``, ``target/coworld/source_value``).
 
 A term that is switched off logs nothing and shows as a dash.
 """
@@ -27,6 +28,8 @@ RELABEL = "source/coworld/relabel_reward_loss"
 MAXMIN = "target/coworld/maxmin_active"
 TARGET_VALUE = "target/coworld/target_value"
 SOURCE_VALUE = "target/coworld/source_value"
+PROBES = ("2", "3", "5", "10")
+"""The ``zeta`` at which each target update measures where Eq. 6's term would bind (``binds_zeta_Z``)."""
 
 
 @dataclass(frozen=True)
@@ -59,6 +62,10 @@ def _share(s: Series | None) -> str:
     return "–" if s is None else f"{100 * s.mean:.1f}% ({100 * s.last:.1f}%)"
 
 
+def _percent(s: Series | None) -> str:
+    return "–" if s is None else f"{100 * s.mean:.1f}%"
+
+
 def _value(s: Series | None) -> str:
     return "–" if s is None else f"{s.mean:.3g} ({s.last:.3g})"
 
@@ -70,8 +77,9 @@ def diagnostics_table(results: Sequence[RunResult]) -> str:
         return ""
     lines = [
         "| run | seed | alignment KL, first → last | relabelled reward loss, first → last"
-        " | max-min binds: run (last) | target critic: run (last) | source critic: run (last) |",
-        "|---|---:|---|---|---|---|---|",
+        " | max-min binds: run (last) | would bind at zeta 2 / 3 / 5 / 10 | target critic: run (last)"
+        " | the cap's critic: run (last) |",
+        "|---|---:|---|---|---|---|---|---|",
     ]
     for r in runs:
         records = read_run_metrics(Path(r.run_dir))
@@ -79,6 +87,7 @@ def diagnostics_table(results: Sequence[RunResult]) -> str:
             _arrow(series(records, ALIGN)),
             _arrow(series(records, RELABEL)),
             _share(series(records, MAXMIN)),
+            " / ".join(_percent(series(records, f"target/coworld/binds_zeta_{z}")) for z in PROBES),
             _value(series(records, TARGET_VALUE)),
             _value(series(records, SOURCE_VALUE)),
         ]

@@ -4,7 +4,7 @@
   and mean ± one standard deviation as a band, one line per algorithm (and CoWorld variant); beside it each run
   against its training hours;
 * the value check (Figure 4(b)): per pair, the critic's mean estimate next to the true discounted return, per
-  algorithm;
+  algorithm and variant, and for CoWorld what the critic that caps its target critic says of the same states;
 * the ablation (Figure 4(a)), when the runs have CoWorld variants: mean ± std of the final return per variant.
 """
 
@@ -104,8 +104,9 @@ def learning_curves(results: Sequence[RunResult], target: str, path: Path) -> bo
 
 
 def value_check(results: Sequence[RunResult], path: Path) -> bool:
-    """Figure 4(b): critic estimate against true discounted return, per pair (subplot) and algorithm."""
-    measured = [r for r in results if r.value_estimate is not None and r.value_true is not None and not r.variant]
+    """Figure 4(b): critic estimate against true discounted return, per pair (subplot) and algorithm (and variant),
+    with the estimate of the critic that caps CoWorld's target critic where it was measured."""
+    measured = [r for r in results if r.value_estimate is not None and r.value_true is not None]
     targets = list(dict.fromkeys(r.target for r in measured))
     if not targets:
         return False
@@ -117,8 +118,13 @@ def value_check(results: Sequence[RunResult], path: Path) -> bool:
         x = np.arange(len(labels))
         estimate = [np.mean([r.value_estimate for r in runs if r.label == label]) for label in labels]
         true = [np.mean([r.value_true for r in runs if r.label == label]) for label in labels]
-        ax.bar(x - 0.2, estimate, 0.4, label="value estimate")
-        ax.bar(x + 0.2, true, 0.4, label="true discounted return")
+        capping = [
+            [r.value_source for r in runs if r.label == label and r.value_source is not None] for label in labels
+        ]
+        ax.bar(x - 0.27, estimate, 0.27, label="value estimate")
+        ax.bar(x, true, 0.27, label="true discounted return")
+        if any(capping):  # CoWorld's runs: what the critic of Eq. 6's cap says of the same states
+            ax.bar(x + 0.27, [np.mean(v) if v else np.nan for v in capping], 0.27, label="the cap's critic")
         ax.set_xticks(x, labels, rotation=30, ha="right", fontsize="small")
         ax.set_title(target, fontsize="small")
         ax.grid(axis="y", alpha=0.3)

@@ -61,6 +61,8 @@ class RunResult:
     """One line per file of the run that could not be read (and was skipped), e.g. ``eval.json: not JSON``."""
     dataset_quality: str | None = None
     """Quality of the target dataset it trained on (:func:`dataset_quality`), None where unknown."""
+    value_source: float | None = None
+    """CoWorld: the mean estimate, over the same steps, of the critic that caps the target critic (Eq. 6)."""
 
     @property
     def paper(self) -> Published | None:
@@ -92,6 +94,7 @@ CSV_COLUMNS = (
     "success_rate",
     "value_estimate",
     "value_true",
+    "value_source",
     "normalized_score",
     "updates",
     "wall_time_s",
@@ -315,7 +318,7 @@ def load_result(run_dir: Path, qualities: dict[str, str | None] | None = None) -
     variant, pair_source = _variant(run_dir, algo, problems)
     source = info.get("source") if isinstance(info.get("source"), str) else None
     source = source or pair_source
-    final = std = success = estimate = true = None
+    final = std = success = estimate = true = capping = None
     episodes = None
     result = _json_object(run_dir / "eval.json", problems)
     scored = (
@@ -334,9 +337,10 @@ def load_result(run_dir: Path, qualities: dict[str, str | None] | None = None) -
             success = None if result.get("success_rate") is None else float(result["success_rate"])
             estimate = _mean([float(v) for v in result.get("value_estimate") or []])
             true = _mean([float(v) for v in result.get("value_true") or []])
+            capping = _mean([float(v) for v in result.get("value_source") or []])
         except (ValueError, KeyError, TypeError) as err:
             problems.append(f"{run_dir / 'eval.json'}: not an evaluation record ({type(err).__name__}: {err})")
-            final = std = success = estimate = true = episodes = None
+            final = std = success = estimate = true = capping = episodes = None
     records = _metrics(run_dir, problems)
     return RunResult(
         run_dir=str(run_dir),
@@ -351,6 +355,7 @@ def load_result(run_dir: Path, qualities: dict[str, str | None] | None = None) -
         success_rate=success,
         value_estimate=estimate,
         value_true=true,
+        value_source=capping,
         normalized_score=normalized(target, final),
         updates=_updates(records, algo),
         wall_time_s=_wall_time(records),

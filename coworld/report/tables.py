@@ -189,11 +189,15 @@ def results_table(results: Sequence[RunResult], *, variants: bool = False) -> st
 
 def value_table(results: Sequence[RunResult]) -> str:
     """Figure 4(b)'s check as a table: mean critic estimate against the true discounted return, per pair,
-    algorithm and variant (finished runs that measured it)."""
+    algorithm and variant (finished runs that measured it), with what CoWorld's cap (the critic Eq. 6 caps the
+    target critic with) says of the same states where it was measured."""
     measured = [r for r in results if r.value_estimate is not None and r.value_true is not None]
     if not measured:
         return ""
-    lines = ["| pair | algorithm | value estimate | true discounted return | runs |", "|---|---|---:|---:|---:|"]
+    lines = [
+        "| pair | algorithm | value estimate | true discounted return | the cap's critic | runs |",
+        "|---|---|---:|---:|---:|---:|",
+    ]
     for target in _rows(measured):
         here = [r for r in measured if r.target == target]
         for algo in _order({r.algo for r in here}):
@@ -201,8 +205,12 @@ def value_table(results: Sequence[RunResult]) -> str:
                 runs = [r for r in here if r.algo == algo and r.variant == variant]
                 estimate = float(np.mean([r.value_estimate for r in runs]))
                 true = float(np.mean([r.value_true for r in runs]))
+                capping = [r.value_source for r in runs if r.value_source is not None]
+                cap = f"{np.mean(capping):.2f}" if capping else "–"
                 name = f"{algo} ({variant})" if variant else algo
-                lines.append(f"| {_pair_label(results, target)} | {name} | {estimate:.2f} | {true:.2f} | {len(runs)} |")
+                lines.append(
+                    f"| {_pair_label(results, target)} | {name} | {estimate:.2f} | {true:.2f} | {cap} | {len(runs)} |"
+                )
     return "\n".join(lines)
 
 

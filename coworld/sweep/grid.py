@@ -1,4 +1,4 @@
-"""What a sweep runs: a grid of runs (pairs x algorithms x seeds x CoWorld variants), the named grids of the paper,
+"""What a sweep runs: a grid of runs (pairs x algorithms x seeds x variants), the named grids of the paper,
 and the CPU-sized toy table.
 
 A :class:`SweepSpec` is pure data. :meth:`SweepSpec.runs` lists its :class:`Run` s; the baselines (offline
@@ -18,6 +18,8 @@ Named grids (:data:`TABLES`):
 * ``toy-centre`` -- the same with the goal at the centre, where no constant action scores: :func:`toy_centre_table`.
 * ``dmc-cpu`` -- walker_walk -> walker_uphill and cheetah_run -> cheetah_uphill with medium-replay targets, at the
   scale 2 CPU cores allow: :func:`dmc_cpu_table`.
+* ``cap-study`` -- when Eq. 6's cap binds: ``dmc-cpu``'s cheetah pair with zeta 3 and 10, the later paper's
+  settings, the target-policy cap and 4x the target updates: :func:`cap_study_table`.
 * ``dmc-mr`` and ``dmc-me`` -- the later CoWorld paper's (NeurIPS 2024) Tables 3 and 9: its six DMC pairs on
   medium-replay and medium-expert target datasets, with its Table 8 hyperparameters (:func:`later_table`);
   ``coworld report`` puts its published numbers (:mod:`coworld.report.paper`) beside ours.
@@ -35,7 +37,7 @@ from typing import Any
 
 from coworld import envs
 from coworld.budget import check_memory
-from coworld.config import PRESETS, make_config
+from coworld.config import PRESETS, make_config, settings_overrides
 from coworld.errors import ConfigError, CoworldError
 from coworld.report import paper
 from coworld.report.paper import PaperTable
@@ -129,8 +131,9 @@ class SweepSpec:
     """(source, target) task pairs."""
     algos: tuple[str, ...] = ALGOS
     seeds: tuple[int, ...] = (0, 1, 2)
-    variants: tuple[tuple[str, tuple[str, ...]], ...] = (("", ()),)
-    """CoWorld variants: (name, config overrides); '' is CoWorld as configured. Baselines run once."""
+    variants: tuple[tuple[Any, ...], ...] = (("", ()),)
+    """Variants: ``(name, config overrides)`` of CoWorld, or ``(name, overrides, algorithms)`` of the algorithms
+    named; '' is CoWorld as configured. Every baseline also runs as configured."""
     preset: str = "paper"
     overrides: tuple[str, ...] = ()
     """``--set`` given to every training run."""
@@ -155,18 +158,25 @@ class SweepSpec:
             raise CoworldError(f"at most {MAX_SEEDS:,} seeds, got {len(self.seeds):,}")
         for seed in self.seeds:
             check_count("a seed", seed, 0, SEED_MAX)
-        names = [name for name, _ in self.variants]
+        names = [name for name, *_ in self.variants]
         if not names or len(set(names)) != len(names):
             raise CoworldError(f"variant names must be distinct and at least one, got {names}")
         for name in names:
             if name and not name.replace("-", "").replace("_", "").isalnum():
                 raise CoworldError(f"variant name {name!r}: use letters, digits, '-' and '_' only")
+        for name, _, *algos in self.variants:
+            unknown = [algo for algo in (algos[0] if algos else ()) if algo not in ALGOS]
+            if unknown:
+                raise CoworldError(
+                    f"variant {name!r} names unknown algorithms {unknown}; choose from {', '.join(ALGOS)}"
+                )
         check_count("eval episodes", self.eval_episodes)
         self.data.check()
-        for _, extra in self.variants:  # every run's config must build (unknown keys, bad values)
+        for _, extra, *_ in self.variants:  # every run's config must build (unknown keys, bad values)
             make_config(self.preset, [*self.overrides, *extra])
         for algo in self.algos:  # and pass what `train` requires of it (rules between keys, memory)
-            for name, extra in self.variants if algo == "coworld" else (("", ()),):
+            for name in self.variants_of(algo):
+                extra = self.variant_overrides(name)
                 try:
                     config = make_config(self.preset, [*self.overrides, *extra])
                     for target in self.targets():
@@ -186,8 +196,7 @@ class SweepSpec:
         seen: set[Run] = set()
         for source, target in self.pairs:
             for algo in self.algos:
-                variants = [name for name, _ in self.variants] if algo == "coworld" else [""]
-                for variant in variants:
+                for variant in self.variants_of(algo):
                     for seed in self.seeds:
                         run = Run(algo, source if algo in NEEDS_SOURCE else None, target, seed, variant)
                         if run not in seen:
@@ -199,9 +208,19 @@ class SweepSpec:
         """Target tasks, each once, in pair order (one dataset each)."""
         return list(dict.fromkeys(target for _, target in self.pairs))
 
+    def variants_of(self, algo: str) -> list[str]:
+        """The variant names ``algo`` runs in: CoWorld's those of two entries; every algorithm those naming it, and a
+        baseline also ''."""
+        named = [name for name, _, *algos in self.variants if algo in (algos[0] if algos else ("coworld",))]
+        return named if algo == "coworld" else list(dict.fromkeys(["", *named]))
+
+    def variant_overrides(self, name: str) -> tuple[str, ...]:
+        """The ``--set`` of variant ``name`` ('' as configured)."""
+        return next((tuple(extra) for entry_name, extra, *_ in self.variants if entry_name == name), ())
+
     def run_overrides(self, run: Run) -> list[str]:
         """The ``--set`` of one run: the sweep's, then its variant's."""
-        return [*self.overrides, *dict(self.variants)[run.variant]]
+        return [*self.overrides, *self.variant_overrides(run.variant)]
 
     def to_dict(self) -> dict[str, Any]:
         return json.loads(json.dumps(dataclasses.asdict(self)))
@@ -212,7 +231,7 @@ class SweepSpec:
             pairs=tuple((s, t) for s, t in data["pairs"]),
             algos=tuple(data["algos"]),
             seeds=tuple(int(s) for s in data["seeds"]),
-            variants=tuple((name, tuple(extra)) for name, extra in data["variants"]),
+            variants=tuple((entry[0], tuple(entry[1]), *(tuple(a) for a in entry[2:])) for entry in data["variants"]),
             preset=data["preset"],
             overrides=tuple(data["overrides"]),
             data=DataSpec(**{**data["data"], "overrides": tuple(data["data"]["overrides"])}),
@@ -424,25 +443,49 @@ def dmc_cpu_table() -> SweepSpec:
     )
 
 
+CAP_STUDY_VARIANTS: tuple[tuple[Any, ...], ...] = (
+    ("", ()),
+    ("zeta3", ("coworld.zeta=3",)),
+    ("zeta10", ("coworld.zeta=10",)),
+    ("later-dmc", settings_overrides("later-dmc")),
+    ("target-policy", ("coworld.cap_critic=target_policy",)),
+    ("4x", ("coworld.target_updates=5000",), ("coworld", "dreamerv2")),
+)
+"""The arms of :func:`cap_study_table`: CoWorld as Table 3 gives it (zeta 1), with zeta 3 and 10, with the later
+paper's DMC settings, with the target-policy critic as its cap; CoWorld and offline DreamerV2 with 4x the target
+updates (5,000 per iteration, 40,000 in all)."""
+
+
+def cap_study_table() -> SweepSpec:
+    """When does CoWorld's value cap bind? ``dmc-cpu``'s cheetah_run -> cheetah_uphill (its schedule, its
+    dataset, the ``cpu`` preset, 3 seeds, 10 evaluation episodes) with the arms of :data:`CAP_STUDY_VARIANTS`, beside
+    offline DreamerV2 and V-D4RL's penalised DreamerV2 (the later paper's "Offline DV2"; its ensemble learns alone
+    for the first quarter of the updates, as the ``tiny`` preset's does).
+    """
+    return SweepSpec(
+        pairs=(("cheetah_run", "cheetah_uphill"),),
+        algos=("coworld", "dreamerv2", "dreamerv2-penalty"),
+        seeds=(0, 1, 2),
+        variants=CAP_STUDY_VARIANTS,
+        preset="cpu",
+        overrides=(*DMC_CPU_OVERRIDES, "penalty.model_updates=2500"),
+        data=DMC_CPU_DATA,
+        eval_episodes=10,
+    )
+
+
 LATER_EXTRA_ALGOS = ("dreamerv2", "dreamerv2-finetune-ewc")
 """Run beside the later paper's columns in its tables, with no published number of its own there: offline DreamerV2
 without V-D4RL's penalty (the seed paper's baseline and every other table's reference) and the EWC fine-tuning (the
 later paper reports it on Meta-World only)."""
 
-LATER_DMC_OVERRIDES = (
-    "coworld.beta2=1.5",
-    "coworld.k=0.1",
-    "coworld.alpha=1",
-    "coworld.target_updates=20000",
-    "coworld.source_updates=20000",
-)
-"""The later paper's Table 8, DMC column, on the ``paper`` preset: beta2 1.5; its k 0.9 weighs the true target reward
-in its Eq. 4, ``(1 - k) * pred + k * r_T``, which is our k = 0.1 (``k * pred + (1 - k) * r_T``); alpha 1; 2e4
-target and 2e4 source updates per iteration."""
+LATER_DMC_OVERRIDES = (*settings_overrides("later-dmc"), "coworld.target_updates=20000", "coworld.source_updates=20000")
+"""The later paper's Table 8, DMC column, on the ``paper`` preset: its settings (``+later-dmc``: beta2 1.5, k 0.9 in
+its Eq. 4, alpha 1, Eq. 5's eta from 1 to 0.1) and 2e4 target and 2e4 source updates per iteration."""
 
-LATER_ROBODESK_OVERRIDES = ("coworld.beta2=1", "coworld.k=0.7", "coworld.alpha=2")
-"""Table 8, Meta-World / RoboDesk column: beta2 1; its k 0.3, our 0.7; alpha 2; 5e4 target and 2e4 source updates
-per iteration (the ``paper`` preset's)."""
+LATER_ROBODESK_OVERRIDES = settings_overrides("later-metaworld")
+"""Table 8, Meta-World / RoboDesk column (``+later-metaworld``: beta2 1, k 0.3 in its Eq. 4, alpha 2), with 5e4 target
+and 2e4 source updates per iteration (the ``paper`` preset's)."""
 
 
 def later_table(table: PaperTable, overrides: tuple[str, ...]) -> SweepSpec:
@@ -489,6 +532,7 @@ TABLES: dict[str, Any] = {
     "toy-cpu": toy_cpu_table,
     "toy-centre": toy_centre_table,
     "dmc-cpu": dmc_cpu_table,
+    "cap-study": cap_study_table,
     "dmc": lambda: SweepSpec(pairs=TABLE1_PAIRS),
     "metaworld": lambda: SweepSpec(pairs=TABLE2_PAIRS),
     "dmc-mr": dmc_medium_replay_table,

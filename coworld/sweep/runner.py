@@ -288,12 +288,14 @@ def merge_specs(saved: SweepSpec, now: SweepSpec, root: Path) -> SweepSpec:
             f"{root} holds a sweep with other run settings ({diff}); rerun with the same --preset, --set, data"
             " and --eval-episodes, or use a new --dir"
         )
-    variants = dict(saved.variants)
-    for name, extra in now.variants:
-        if variants.setdefault(name, extra) != extra:
+    variants = {entry[0]: entry for entry in saved.variants}
+    for entry in now.variants:
+        held = variants.setdefault(entry[0], entry)
+        if held != entry:
             raise CoworldError(
-                f"{root} holds the variant {name or 'coworld'!r} with overrides {list(variants[name])}, not"
-                f" {list(extra)}; give the new variant another name, or use a new --dir"
+                f"{root} holds the variant {entry[0] or 'coworld'!r} with overrides {list(held[1])}"
+                f"{'' if len(held) < 3 else ' of ' + ', '.join(held[2])}, not {list(entry[1])}; give the new variant"
+                " another name, or use a new --dir"
             )
 
     def union(a: tuple, b: tuple) -> tuple:
@@ -304,7 +306,7 @@ def merge_specs(saved: SweepSpec, now: SweepSpec, root: Path) -> SweepSpec:
         pairs=union(saved.pairs, now.pairs),
         algos=union(saved.algos, now.algos),
         seeds=union(saved.seeds, now.seeds),
-        variants=tuple(variants.items()),
+        variants=tuple(variants.values()),
     )
 
 

@@ -30,6 +30,7 @@ any alignment has pulled the target towards one of them.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 from collections.abc import Iterable, Mapping, Sequence
@@ -40,7 +41,8 @@ import numpy as np
 import torch
 
 from coworld import interrupt
-from coworld.agents.coworld import CoWorld, SourceLearner
+from coworld.agents.coworld import CoWorld
+from coworld.agents.coworld_feeds import SourceLearner
 from coworld.agents.dreamerv2 import DreamerV2
 from coworld.config import Config, to_dict
 from coworld.envs import task_spec
@@ -48,6 +50,7 @@ from coworld.errors import CheckpointError
 from coworld.losses.coworld import closest_source, domain_distance
 from coworld.storage import write_text_atomically
 from coworld.training.checkpoint import load_checkpoint, rng_state, save_checkpoint, set_rng_state
+from coworld.training.job import parse_sources
 from coworld.training.logger import Logger
 from coworld.training.online import pretrain_source
 from coworld.training.run import seed_everything
@@ -96,6 +99,16 @@ def _batches(dataset: Any, config: Config, seed: int, count: int) -> list[dict[s
 def _write_json(path: Path, data: Mapping[str, Any]) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     write_text_atomically(path, json.dumps(data, indent=2) + "\n")
+
+
+def settle_source(job: Any, *, dataset: Any, device: torch.device, progress: bool = True) -> tuple[Any, Path | None]:
+    """``job`` with its one source, and the warmed-up target agent's checkpoint to start from (None with one source
+    given): where several are given, the closest, chosen by :func:`choose_source`."""
+    candidates = parse_sources(str(job.source))
+    if len(candidates) == 1:
+        return job, None
+    choice, warm_target = choose_source(job, candidates, dataset=dataset, device=device, progress=progress)
+    return dataclasses.replace(job, source=choice.chosen), warm_target
 
 
 def choose_source(

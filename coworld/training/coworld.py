@@ -11,16 +11,11 @@ The paper's Algorithm 1, line by line, and where each line runs (the update step
             Eqs. 4-5 reward, world model, actor-critic,          (CoWorld.train_source), with source environment
             append B_S by acting in the source environment       steps at the train ratio between updates
 
-Each iteration draws its target batches from one stream, a sampler seeded by (seed, iteration): the target phase
-takes the first K1, the source phase's relabelling the next ones. The source episodes run on across phase
-boundaries (the pretraining cut and the pauses leave no mark in the source replay). The target agent is
-evaluated after every ``coworld.eval_every``-th iteration.
-
-A checkpoint is written after every phase; its :class:`Progress` says which phase comes next, so a killed run
-resumes at the start of that phase: a run resumed in the source phase skips the stream's first K1 batches, and sees
-the batches an uninterrupted one would have. Stopped while it pretrains, the run resumes the pretraining from its
-last source checkpoint with the source replay cut back to what that checkpoint had seen
-(:meth:`~coworld.training.online.OnlineTrainer.restore`).
+An iteration's target batches come from one stream seeded by (seed, iteration): the target phase takes the first
+K1, the source phase's relabelling the next. Source episodes run on across phase boundaries. A checkpoint is
+written after every phase, its :class:`Progress` naming the next, so a stopped run resumes at that phase's start
+with the batches an uninterrupted one would draw; stopped while pretraining, it resumes from the last source
+checkpoint with the source replay cut back to it (:meth:`~coworld.training.online.OnlineTrainer.restore`).
 """
 
 from __future__ import annotations
@@ -33,7 +28,8 @@ from typing import Any
 import torch
 
 from coworld import interrupt
-from coworld.agents.coworld import CoWorld, SourceLearner, TargetBatches
+from coworld.agents.coworld import CoWorld
+from coworld.agents.coworld_feeds import SourceLearner, TargetBatches
 from coworld.config import to_dict
 from coworld.data import open_dataset
 from coworld.data.prefetch import Prefetcher, stop_prefetch
@@ -41,9 +37,9 @@ from coworld.envs import task_spec
 from coworld.errors import CheckpointError
 from coworld.progress import progress_bar
 from coworld.training.checkpoint import CHECKPOINT_NAME, load_checkpoint, rng_state, save_checkpoint, set_rng_state
-from coworld.training.choice import choose_source, restore_warm_target
+from coworld.training.choice import restore_warm_target, settle_source
 from coworld.training.evaluate import evaluate
-from coworld.training.job import TrainJob, parse_sources
+from coworld.training.job import TrainJob
 from coworld.training.logger import Logger, Rate
 from coworld.training.online import make_source_trainer, source_replay_writer
 from coworld.training.openloop import log_open_loop
@@ -66,16 +62,11 @@ class Progress:
 
 
 def train_coworld(job: TrainJob, *, device: torch.device, resumed: bool, progress: bool = True) -> dict[str, Any]:
-    """Run Algorithm 1 for a checked job; resumes its run folder. Several sources (``--source A,B``): the closest is
-    chosen first (:func:`coworld.training.choice.choose_source`), then Algorithm 1 runs with it."""
-    del resumed  # the run folder says what is there: the checkpoints are read whatever the caller knew
+    """Run Algorithm 1 for a checked job, resuming what its run folder holds (so ``resumed`` changes nothing); with
+    several sources (``--source A,B``) the closest is chosen first (:func:`coworld.training.choice.settle_source`)."""
     dataset = open_dataset(job.dataset)
     try:
-        warm_target = None
-        candidates = parse_sources(str(job.source))
-        if len(candidates) > 1:
-            choice, warm_target = choose_source(job, candidates, dataset=dataset, device=device, progress=progress)
-            job = dataclasses.replace(job, source=choice.chosen)
+        job, warm_target = settle_source(job, dataset=dataset, device=device, progress=progress)
         writer = source_replay_writer(job.logdir, str(job.source), algorithm="coworld", seed=job.config.seed)
         with Logger(job.logdir) as logger, writer:
             algorithm = Algorithm1(job, dataset, device=device, logger=logger, writer=writer, progress=progress)
@@ -103,17 +94,13 @@ class Algorithm1:
             source_action_size=task_spec(str(job.source)).action_size,
             device=device,
         )
+        learner, source = SourceLearner(self.agent), str(job.source)
         self.source = make_source_trainer(
-            SourceLearner(self.agent),
-            str(job.source),
-            config=self.config,
-            logdir=job.logdir,
-            writer=writer,
-            logger=logger,
+            learner, source, config=self.config, logdir=job.logdir, writer=writer, logger=logger
         )
         self.state = Progress()
         self.checkpoint_path = Path(job.logdir) / CHECKPOINT_NAME
-        self.bar: Any = None
+        self.bar: Any = progress_bar(total=0, desc="coworld", unit="updates", enabled=False)
 
     # -- Algorithm 1 --------------------------------------------------------------------------------------------------
     def run(self) -> dict[str, Any]:
@@ -122,13 +109,8 @@ class Algorithm1:
             self.pretrain_source()
         per_iteration = cfg.target_updates + cfg.source_updates
         done = self.state.iteration * per_iteration + (cfg.target_updates if self.state.phase == "source" else 0)
-        self.bar = progress_bar(
-            total=cfg.iterations * per_iteration,
-            initial=done,
-            desc="coworld",
-            unit="updates",
-            enabled=self.show_progress,
-        )
+        total = cfg.iterations * per_iteration
+        self.bar = progress_bar(total=total, initial=done, desc="coworld", unit="updates", enabled=self.show_progress)
         while self.state.iteration < cfg.iterations:  # line 4
             self.begin_iteration()
             if self.state.phase == "target":  # lines 5-12
@@ -198,15 +180,10 @@ class Algorithm1:
 
     def evaluate(self) -> None:
         """The target agent in the target environment (returns and the value check), and the open-loop strips."""
-        config, target = self.config, self.job.target
-        result, _ = evaluate(
-            self.agent,
-            target,
-            episodes=config.train.eval_episodes,
-            workers=min(config.train.envs, config.train.eval_episodes),
-            seed=config.seed + 10_000,
-            discount=config.actor_critic.discount,
-        )
+        train, target = self.config.train, self.job.target
+        episodes, seed, discount = train.eval_episodes, self.config.seed + 10_000, self.config.actor_critic.discount
+        workers = min(train.envs, episodes)
+        result, _ = evaluate(self.agent, target, episodes=episodes, workers=workers, seed=seed, discount=discount)
         self.state.last_eval = result.mean
         step = self.agent.target.updates
         self.logger.log(result.metrics(), step, unit="target_update")
@@ -227,6 +204,7 @@ class Algorithm1:
                 "source_act_rng": self.source.act_rng.get_state(),
                 "progress": dataclasses.asdict(self.state),
                 "rng": rng_state(),
+                **({} if self.agent.policy_value is None else {"policy_value": self.agent.policy_value.state_dict()}),
             },
         )
 
@@ -238,15 +216,20 @@ class Algorithm1:
             if warm_target is not None:
                 restore_warm_target(self.agent, warm_target, self.agent.device)
             return
-        state = load_checkpoint(self.checkpoint_path, map_location=self.agent.device, keys=CHECKPOINT_KEYS)
+        keys = CHECKPOINT_KEYS + (() if self.agent.policy_value is None else ("policy_value",))
+        state = load_checkpoint(self.checkpoint_path, map_location=self.agent.device, keys=keys)
         if state.get("kind") != CHECKPOINT_KIND:
             raise CheckpointError(f"{self.checkpoint_path} is a {state.get('kind')!r} checkpoint, not a coworld one")
         self.agent.target.load_state_dict(state["agent"])
         self.agent.source.load_state_dict(state["source"])
+        if self.agent.policy_value is not None:
+            self.agent.policy_value.load_state_dict(state["policy_value"])
         self.source.updates = int(state["source_updates"])
         if "source_act_rng" in state:
             self.source.act_rng.set_state(state["source_act_rng"])
         self.state = Progress(**state["progress"])
+        # a checkpoint is written at a phase's start: the source phases before it made K2 relabelled updates each
+        self.agent.relabelled = self.state.iteration * self.cfg.source_updates
         set_rng_state(state["rng"])
 
     def close(self) -> None:
@@ -255,9 +238,6 @@ class Algorithm1:
 
     def _show(self) -> None:
         """The progress bar's postfix: iteration, phase and the last evaluation return."""
-        if self.bar is None:
-            return
-        postfix = {"iteration": f"{self.state.iteration + 1}/{self.cfg.iterations}", "phase": self.state.phase}
-        if self.state.last_eval is not None:
-            postfix["eval_return"] = f"{self.state.last_eval:.1f}"
-        self.bar.set_postfix(postfix)
+        last = "-" if self.state.last_eval is None else f"{self.state.last_eval:.1f}"
+        iteration = f"{self.state.iteration + 1}/{self.cfg.iterations}"
+        self.bar.set_postfix(iteration=iteration, phase=self.state.phase, eval_return=last)

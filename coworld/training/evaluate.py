@@ -6,7 +6,8 @@ seen. Episodes run in ``workers`` environments side by side (worker processes wh
 ``e`` is seeded by ``(seed, e)`` alone, so the same checkpoint and seed give the same returns whatever the
 worker count. The result holds the return of every episode, its normalized score against the task's random and
 reference returns, the success rate on tasks that report success, and Figure 4(b)'s value check: the critic's
-estimate against the true discounted return of the same episode from the same step (:func:`true_values`).
+estimate against the true discounted return of the same episode from the same step (:func:`true_values`), and for
+CoWorld also what the critic that caps the target critic (Eq. 6) says of the same states (``source_value(state)``).
 """
 
 from __future__ import annotations
@@ -43,6 +44,9 @@ class EvalResult:
     """Per episode: the critic's mean estimate over the episode's steps."""
     value_true: list[float] | None = None
     """Per episode: the mean over the same steps of the discounted return actually received from there on."""
+    value_source: list[float] | None = None
+    """CoWorld: per episode, the mean over the same steps of the estimate of the critic that caps the target critic
+    in Eq. 6 (the source critic, or the target-policy critic)."""
     discount: float | None = None
     extra: dict[str, Any] = field(default_factory=dict)
 
@@ -80,6 +84,8 @@ class EvalResult:
                 f"; value estimate {np.mean(self.value_estimate):.2f} vs true discounted return"
                 f" {np.mean(self.value_true):.2f}"
             )
+        if self.value_source is not None:
+            text += f" (the cap's critic: {np.mean(self.value_source):.2f})"
         return text
 
     def metrics(self, prefix: str = "") -> dict[str, float]:
@@ -92,6 +98,8 @@ class EvalResult:
         if self.value_estimate is not None and self.value_true is not None:
             out[f"{prefix}eval/value_estimate"] = float(np.mean(self.value_estimate))
             out[f"{prefix}eval/value_true"] = float(np.mean(self.value_true))
+        if self.value_source is not None:
+            out[f"{prefix}eval/value_source"] = float(np.mean(self.value_source))
         return out
 
     def to_dict(self) -> dict[str, Any]:
@@ -191,12 +199,14 @@ def evaluate(
     workers = max(1, min(workers, episodes))
     spec = envs.task_spec(task)
     want_values = discount is not None and hasattr(agent, "value")
+    want_source = want_values and hasattr(agent, "source_value")
     cuda = torch.cuda.is_available() and getattr(getattr(agent, "device", None), "type", "cpu") == "cuda"
     returns: list[float] = []
     lengths: list[int] = []
     successes: list[bool] = []
     estimates: list[float] = []
     trues: list[float] = []
+    sources: list[float] = []
     videos: list[np.ndarray] = []
     venv = envs.make_vector(task, workers, seed=seed)
     bar = progress_bar(total=episodes, desc=f"eval {task}", unit="episodes", enabled=progress, leave=False)
@@ -214,6 +224,7 @@ def evaluate(
                 alive[:n] = True
                 ep_rewards: list[list[float]] = [[] for _ in range(n)]
                 ep_values: list[list[float]] = [[] for _ in range(n)]
+                ep_source: list[list[float]] = [[] for _ in range(n)]
                 ep_success = np.zeros(n, dtype=bool)
                 frames = [[obs[i]] for i in range(n)]
                 actions = np.zeros((workers, *venv.single_action_space.shape), np.float32)
@@ -225,6 +236,8 @@ def evaluate(
                             action, states[i] = agent.policy(obs[i : i + 1], states[i], mode="eval", is_first=first)
                             if want_values:
                                 ep_values[i].append(float(np.asarray(agent.value(states[i]))[0]))  # type: ignore[attr-defined]
+                            if want_source:
+                                ep_source[i].append(float(np.asarray(agent.source_value(states[i]))[0]))  # type: ignore[attr-defined]
                         actions[i] = action[0]
                     obs, reward, terminated, truncated, info = venv.step(actions)
                     for i in np.flatnonzero(alive):
@@ -244,6 +257,8 @@ def evaluate(
                     if want_values:
                         estimates.append(float(np.mean(ep_values[i])))
                         trues.append(float(np.mean(true_values(rewards, discount))))  # type: ignore[arg-type]
+                    if want_source:
+                        sources.append(float(np.mean(ep_source[i])))
                     if done_episodes + i < video_episodes:
                         videos.append(np.stack(frames[i]))
                 done_episodes += n
@@ -258,6 +273,7 @@ def evaluate(
         successes=successes if spec.has_success else None,
         value_estimate=estimates if want_values else None,
         value_true=trues if want_values else None,
+        value_source=sources if want_source else None,
         discount=discount if want_values else None,
     )
     return result, videos
@@ -294,8 +310,17 @@ def load_trained_agent(path: Path, device: str = "auto") -> tuple[Any, dict[str,
     state = load_run_checkpoint(ckpt, config, info)
     config = replace(config, device=device)
     torch_device = resolve_device(device)
-    agent = make_agent(
-        info["algo"], config=config, action_size=envs.task_spec(info["target"]).action_size, device=torch_device
-    )
+    action_size = envs.task_spec(info["target"]).action_size
+    if info["algo"] == "coworld" and "source_task" in state:  # both agents: the value check reads the cap's critic too
+        from coworld.agents.coworld import CoWorld
+
+        source_size = envs.task_spec(state["source_task"]).action_size
+        agent = CoWorld(config=config, action_size=action_size, source_action_size=source_size, device=torch_device)
+        load_agent_state(agent.target, state["agent"], ckpt, "a coworld target agent of this config")
+        load_agent_state(agent.source, state.get("source"), ckpt, "a coworld source agent of this config")
+        if agent.policy_value is not None:
+            load_agent_state(agent.policy_value, state.get("policy_value"), ckpt, "a coworld target-policy critic")
+        return agent, info, config
+    agent = make_agent(info["algo"], config=config, action_size=action_size, device=torch_device)
     load_agent_state(agent, state["agent"], ckpt, f"a {info['algo']} agent of this config")
     return agent, info, config

@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from coworld.config import Config, first_difference, from_dict, to_dict, to_json
+from coworld.config import Config, first_difference, from_dict, split_preset, to_dict, to_json
 from coworld.devices import resolve_device
 from coworld.errors import ConfigError, CoworldError
 from coworld.storage import write_text_atomically
@@ -33,14 +33,15 @@ def seed_everything(seed: int) -> None:
 def preset_warnings(preset: str, device: str, algo: str = "dreamerv2") -> list[str]:
     """Warnings of a preset that does not size this run for this machine: the GPU-sized paper preset on a CPU, and
     the cpu preset for a model-free baseline (it sizes the DreamerV2 family only)."""
-    if preset == "cpu" and algo in ("curl", "curl-cql", "drq-bc"):
+    size, _ = split_preset(preset)
+    if size == "cpu" and algo in ("curl", "curl-cql", "drq-bc"):
         section = "drqbc" if algo == "drq-bc" else "curl"
         return [
             f"the cpu preset sizes coworld and the dreamerv2 family only: {algo} runs at the paper's size here"
             f" ({section}.updates, {section}.batch_size); pass --preset tiny for a small run, or size it with"
             f" --set {section}.KEY=VALUE"
         ]
-    if preset != "paper" or resolve_device(device).type != "cpu":
+    if size != "paper" or resolve_device(device).type != "cpu":
         return []
     return [
         "the paper preset is sized for a GPU: on this CPU a paper-size update takes seconds, so a run takes weeks;"

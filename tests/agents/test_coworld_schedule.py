@@ -11,7 +11,8 @@ from typing import Any
 import pytest
 import torch
 
-from coworld.agents.coworld import ALIGN_SOURCE, CoWorld, TargetBatches
+from coworld.agents.coworld import ALIGN_SOURCE, CoWorld
+from coworld.agents.coworld_feeds import TargetBatches
 from coworld.config import make_config
 from coworld.data import open_dataset
 from coworld.losses.coworld import alignment_loss

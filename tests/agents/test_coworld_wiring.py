@@ -20,7 +20,8 @@ import torch
 from torch import Tensor
 
 from coworld.agents import coworld as coworld_module
-from coworld.agents.coworld import ALIGN_SOURCE, CoWorld, TargetBatches
+from coworld.agents.coworld import ALIGN_SOURCE, CoWorld
+from coworld.agents.coworld_feeds import SourceLearner, TargetBatches
 from coworld.config import make_config
 from coworld.data import open_dataset
 from coworld.errors import ConfigError
@@ -469,7 +470,7 @@ def test_the_source_learner_acts_evaluates_and_trains_as_the_source_agent(target
     """What the online trainer drives in the source phases: the source agent's policy (keywords included) and
     value, and CoWorld's source update with its metrics' ``source/`` prefix taken off (the trainer adds its own)."""
     agent = _agent("coworld.reward_relabel=false")
-    learner = coworld_module.SourceLearner(agent)
+    learner = SourceLearner(agent)
     obs, is_first = _observations(), np.array([False, True])
     first = _act(learner.policy, obs, None, mode="eval")
     assert _same_actions(first, _act(agent.source.policy, obs, None, mode="eval"))

@@ -308,10 +308,10 @@ def test_value_reads_the_critic_at_the_policy_state():
 
 @pytest.mark.parametrize("lr", [1e-4, 1e-2])
 def test_weight_decay_is_dreamerv2s_multiplicative_step_whatever_the_learning_rate(lr: float) -> None:
-    from coworld.agents.dreamerv2 import _optimizer
+    from coworld.agents.dreamerv2 import make_optimizer
 
     weight = torch.nn.Parameter(torch.tensor([1.0, -2.0, 4.0]))
-    optimizer = _optimizer([weight], lr=lr, eps=1e-5, decay=0.1)
+    optimizer = make_optimizer([weight], lr=lr, eps=1e-5, decay=0.1)
     weight.grad = torch.zeros_like(weight)  # a zero gradient: Adam's own step is zero, only the decay acts
     optimizer.step()
     assert torch.allclose(weight.detach(), torch.tensor([0.9, -1.8, 3.6]))

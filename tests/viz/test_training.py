@@ -38,7 +38,8 @@ def episodes():
 
 
 def test_world_models_of_each_kind_of_agent():
-    from coworld.agents.coworld import CoWorld, SourceLearner
+    from coworld.agents.coworld import CoWorld
+    from coworld.agents.coworld_feeds import SourceLearner
     from coworld.config import make_config
 
     dreamer = tiny_agent()
