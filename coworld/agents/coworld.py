@@ -195,9 +195,9 @@ class CoWorld:
         if seen:
             metrics.pop("wm/relabel")
             metrics.pop("wm/eta_mix", None)
-            metrics.update(
-                {f"coworld/{'relabel_reward_loss' if k == 'relabel' else k}": float(v) for k, v in seen.items()}
-            )
+            metrics["coworld/relabel_reward_loss"] = float(seen["relabel"].detach())
+            if "eta" in seen:
+                metrics["coworld/eta"] = seen["eta"]
             self.relabelled += 1
         if self.source.updates >= self.config.train.actor_warmup:
             metrics.update(self.source.train_actor_critic(post, is_terminal=batch_t["is_terminal"]))
