@@ -576,7 +576,7 @@ PRESETS: dict[str, dict[str, Any]] = {
     # Real learning on 2 CPU cores: the tiny networks with an update every 2 env steps, on batch 8 x 16 (64 replayed
     # steps per env step). Batch 16 x 32 (a ratio of 256, the one the side-by-side comparison with a reference
     # Dreamer matched) learned no better and held expert level less well on toy_reach, at 4x the update's cost
-    # (benchmarks/RESULTS.md, "The actor collapse, fourth pass").
+    # (benchmarks/archive/speed-work-notes.md, "The actor collapse, fourth pass").
     "cpu": {
         "world_model.cnn_depth": 8,
         # The GRU every result of this preset was measured with: no gate bias, LayerNorm epsilon 1e-5 (the paper
@@ -596,9 +596,9 @@ PRESETS: dict[str, dict[str, Any]] = {
         "actor_critic.discount": 0.99,
         "actor_critic.actor_lr": 2e-4,
         "actor_critic.critic_lr": 3e-4,
-        # DreamerV3's behaviour learning and heads on DreamerV2's world model (RESULTS.md, "The actor collapse,
-        # third pass"): normalised returns, advantages through the dynamics, a critic that bootstraps from itself
-        # with the slow critic as a regulariser, two-hot reward head and critic that start at zero (so the actor
+        # DreamerV3's behaviour learning and heads on DreamerV2's world model (benchmarks/archive/
+        # speed-work-notes.md, "The actor collapse, third pass"): normalised returns, advantages through the dynamics,
+        # a critic that bootstraps from itself with the slow critic as a regulariser, two-hot reward head and critic that start at zero (so the actor
         # keeps its spread until rewards differ), LayerNorm + SiLU heads, 1% unimix latents. The actor is
         # DreamerV1's tanh-squashed normal, whose entropy counts the squash, so a mean pushed into tanh's flat tails
         # costs entropy and can come back (DreamerV3's Normal(tanh(m), std) left one action dimension pinned at +1

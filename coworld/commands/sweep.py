@@ -75,7 +75,7 @@ def sweep(
     docs/reproducing.md (the tables, Ray, grid files).
 
     \b
-    coworld sweep --table toy --dir sweeps/toy --jobs 2              # the CPU table: half an hour on 2 cores
+    coworld sweep --table toy --dir sweeps/toy --jobs 2              # the CPU table, 27 runs at tiny sizes
     coworld sweep --table dmc --dir sweeps/dmc --jobs 4 --threads 4  # Table 1 on a GPU machine
     coworld sweep --table dmc --dir /shared/dmc --ray auto --gpus-per-run 0.5
     coworld sweep --table dmc-me --dir sweeps/dmc-me --jobs 4       # the later paper's Table 9 (medium-expert)

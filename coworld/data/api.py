@@ -77,7 +77,7 @@ def resolve_dataset(path_or_name: str | Path) -> Path:
     if not resolved.exists():
         raise DatasetError(
             f"no dataset named '{path_or_name}': {resolved} does not exist; make it with "
-            f"`coworld collect --task {task} --quality {quality}` or pass the file's path"
+            f"`coworld collect --task {task} --quality {quality} --preset cpu` or pass the file's path"
         )
     return resolved
 

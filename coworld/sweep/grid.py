@@ -308,8 +308,8 @@ def toy_table() -> SweepSpec:
     first 750 on their world model, the fine-tuned ones first pretrain in the source as CoWorld's source does),
     CURL, CURL+CQL and DrQ+BC 3,000 of their cheaper updates. CoWorld's source pretrains for 2,000 environment
     steps and makes 100 updates per iteration. Each run ends with a 10-episode evaluation. Measured on 2 shared CPU
-    cores (docs/reproducing.md), before DrQ+BC, LOMPO and the three DreamerV2 variants joined: one seed of the four
-    others took about 16 CPU-minutes, CoWorld's run 7 of them; their 3 seeds fit in half an hour with ``--jobs 2``.
+    cores (benchmarks/archive/toy-tables.md), before DrQ+BC, LOMPO and the three DreamerV2 variants joined: one seed
+    of the four others took about 16 CPU-minutes, CoWorld's run 7 of them.
     """
     return SweepSpec(
         pairs=(("toy_reach", "toy_reach_shifted"),),
@@ -360,8 +360,8 @@ def toy_cpu_table() -> SweepSpec:
     seeds 0-3 at 3,500 steps), and a medium-replay target dataset collected the way the paper makes its datasets
     (:data:`TOY_CPU_DATA`).
 
-    Where :func:`toy_table` tests the pipeline in half an hour with agents that learn little, this table is the
-    transfer result: on the ``cpu`` preset DreamerV2 reads the dot in toy_reach (benchmarks/RESULTS.md, "The actor
+    Where :func:`toy_table` tests the pipeline with agents that learn little, this table is the transfer result: on
+    the ``cpu`` preset DreamerV2 reads the dot in toy_reach (benchmarks/archive/speed-work-notes.md, "The actor
     collapse, third pass"), so CoWorld's source knows what the goal is worth.
     """
     return dataclasses.replace(
