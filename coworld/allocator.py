@@ -9,8 +9,8 @@ update faults the same pages in again.
   the allocator PyTorch's CPU performance guide recommends, when the library is installed (Debian's
   ``libtcmalloc-minimal4``, which ``scripts/install.sh`` installs). It reuses freed blocks by size class, so it is
   as fast as tuned glibc and smaller: at the authors' DMC sizes with batch 150 x 50 it peaked at 11.2 GiB against
-  13.5 GiB (benchmarks/archive/speed-work-notes.md, "tcmalloc, and NM512/r2dreamer as a third peer"). ``COWORLD_MALLOC=glibc``
-  turns it off.
+  13.5 GiB (benchmarks/archive/speed-work-notes.md, "tcmalloc, and NM512/r2dreamer as a third peer").
+  ``COWORLD_MALLOC=glibc`` turns it off.
 * :func:`keep_freed_memory`, where tcmalloc is not loaded, raises glibc's mmap and trim thresholds and pads the heap
   (the settings of ``MALLOC_MMAP_THRESHOLD_=1073741824 MALLOC_TRIM_THRESHOLD_=1073741824
   MALLOC_TOP_PAD_=268435456``, applied at run time through ``mallopt``).

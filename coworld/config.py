@@ -598,8 +598,9 @@ PRESETS: dict[str, dict[str, Any]] = {
         "actor_critic.critic_lr": 3e-4,
         # DreamerV3's behaviour learning and heads on DreamerV2's world model (benchmarks/archive/
         # speed-work-notes.md, "The actor collapse, third pass"): normalised returns, advantages through the dynamics,
-        # a critic that bootstraps from itself with the slow critic as a regulariser, two-hot reward head and critic that start at zero (so the actor
-        # keeps its spread until rewards differ), LayerNorm + SiLU heads, 1% unimix latents. The actor is
+        # a critic that bootstraps from itself with the slow critic as a regulariser, two-hot reward head and critic
+        # that start at zero (so the actor keeps its spread until rewards differ), LayerNorm + SiLU heads, 1% unimix
+        # latents. The actor is
         # DreamerV1's tanh-squashed normal, whose entropy counts the squash, so a mean pushed into tanh's flat tails
         # costs entropy and can come back (DreamerV3's Normal(tanh(m), std) left one action dimension pinned at +1
         # on 2 seeds in 4: "The actor collapse, fourth pass").

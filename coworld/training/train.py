@@ -210,8 +210,8 @@ def check_dataset(path: Path, task: str, action_size: int, needed: tuple[int, st
 
     if not path.exists():
         raise DatasetError(
-            f"no dataset at {path}; make one with `coworld collect --task {task} --preset cpu --out {path}` (or --preset"
-            " tiny to try the pipeline) or pass --dataset"
+            f"no dataset at {path}; make one with `coworld collect --task {task} --preset cpu --out {path}`"
+            " (or --preset tiny to try the pipeline) or pass --dataset"
         )
     with open_dataset(path) as data:
         if data.task != task:

@@ -77,13 +77,15 @@ def _reads_the_dot(tmp_path, seed: int) -> float:
     return learned.mean
 
 
-@pytest.mark.timeout(1800)  # 9-14 minutes beside 3-4 other jobs (archive/speed-work-notes.md, "The actor collapse, fourth pass")
+# 9-14 minutes beside 3-4 other jobs (benchmarks/archive/speed-work-notes.md, "The actor collapse, fourth pass")
+@pytest.mark.timeout(1800)
 def test_cpu_preset_reads_the_dot_on_toy_reach(tmp_path):
     """CI's perception test: the ``cpu`` preset's DreamerV2, 3,000 env steps online on toy_reach, scores what no
     constant action can (the best constant direction + 3).
 
     Measured through ``coworld collect`` on seeds 0-3: 44.7 / 45.4 / 42.0 / 46.6 at 3,000 steps; in process, as
-    here, on seeds 0-2: 44.6 / 46.1 / 43.0 (benchmarks/archive/speed-work-notes.md, "The actor collapse, fourth pass")."""
+    here, on seeds 0-2: 44.6 / 46.1 / 43.0 (benchmarks/archive/speed-work-notes.md, "The actor collapse, fourth
+    pass")."""
     learned = _reads_the_dot(tmp_path, seed=0)
     assert learned > BEST_CONSTANT + 3.0, learned
 
