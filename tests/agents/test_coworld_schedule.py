@@ -166,3 +166,57 @@ def test_prefetching_leaves_a_coworld_run_unchanged(tmp_path: Path, toy_dataset_
     plain, ahead = ({"target": s["agent"], "source": s["source"]} for s in (states[False], states[True]))
     _assert_same_tensors(plain, ahead)
     assert states[False]["progress"]["iteration"] == states[True]["progress"]["iteration"] == 2
+
+
+PRETRAINING = [
+    "device=cpu",
+    "train.prefill=50",
+    "train.pretrain_updates=2",
+    "train.train_every=5",
+    "train.eval_episodes=1",
+    "train.checkpoint_every=50",
+    "coworld.pretrain_steps=200",
+    "coworld.iterations=1",
+    "coworld.target_updates=2",
+    "coworld.source_updates=5",
+]
+
+
+@pytest.mark.parametrize("stop_at", [40, 130], ids=["before-its-first-checkpoint", "after-a-checkpoint"])
+def test_a_run_stopped_while_it_pretrains_ends_with_an_uninterrupted_runs_counts(
+    stop_at: int, tmp_path: Path, toy_dataset_writer, coworld_toy_job, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Stopped while its source agent pretrains (Ctrl-C, SIGTERM, a kill, a full disk), the rerun continues from the
+    last source checkpoint with the source replay cut back to what that checkpoint had seen, so it ends with the
+    source updates and steps an uninterrupted run ends with; stopped before the first checkpoint it starts the
+    pretraining over, and trains the very weights an uninterrupted run trains."""
+    dataset = toy_dataset_writer(tmp_path / "target.h5", "toy_reach_shifted", episodes=3)
+    run_job(coworld_toy_job(dataset, tmp_path / "whole", PRETRAINING), progress=False)
+    whole = torch.load(tmp_path / "whole" / "checkpoint.pt", weights_only=True)
+
+    job = coworld_toy_job(dataset, tmp_path / "run", PRETRAINING)
+    original_due = OnlineTrainer._train_due
+
+    def stopping(self):
+        if self.steps >= stop_at:
+            raise KeyboardInterrupt
+        original_due(self)
+
+    monkeypatch.setattr(OnlineTrainer, "_train_due", stopping)
+    with pytest.raises(KeyboardInterrupt):
+        run_job(job, progress=False)
+    assert not (tmp_path / "run" / "checkpoint.pt").exists()  # stopped inside the pretraining
+    assert (tmp_path / "run" / "source" / "checkpoint.pt").exists() == (stop_at > 50)
+    with open_dataset(tmp_path / "run" / "source_replay.h5") as replay:
+        assert replay.num_steps >= 40  # episodes the stopped run had recorded, which the rerun cuts back
+    monkeypatch.undo()
+    run_job(job, progress=False)
+    resumed = torch.load(tmp_path / "run" / "checkpoint.pt", weights_only=True)
+    assert resumed["source_updates"] == whole["source_updates"] == 2 + (200 - 50) // 5 + 1 + 5
+    with (
+        open_dataset(tmp_path / "run" / "source_replay.h5") as a,
+        open_dataset(tmp_path / "whole" / "source_replay.h5") as b,
+    ):
+        assert a.num_steps == b.num_steps
+    if stop_at < 50:  # started over: the very weights (from a checkpoint, the counts)
+        _assert_same_tensors(whole["source"], resumed["source"])
