@@ -28,6 +28,7 @@ from torch import Tensor
 from coworld.agents.dreamerv2 import DreamerV2
 from coworld.agents.policy_value import PolicyValue
 from coworld.config import Config
+from coworld.errors import ConfigError
 from coworld.losses.coworld import (
     alignment_term,
     max_min_active,
@@ -39,6 +40,7 @@ from coworld.losses.coworld import (
 )
 from coworld.losses.dreamer import reward_loss
 
+ALIGN_ON = ("latent", "embedding")
 ALIGN_SOURCE = "align_source"
 """The key of a target batch's :meth:`CoWorld.source_alignment`, where :class:`TargetBatches` made it."""
 PROBE_ZETAS = (2.0, 3.0, 5.0, 10.0)
@@ -75,6 +77,8 @@ class CoWorld:
         device: torch.device | str,
         source_action_size: int | None = None,
     ) -> None:
+        if config.coworld.align_on not in ALIGN_ON:  # a config built by hand, past make_config's check
+            raise ConfigError(f"coworld.align_on must be one of {', '.join(ALIGN_ON)}, not {config.coworld.align_on!r}")
         self.config = config
         source_action_size = action_size if source_action_size is None else source_action_size
         self.source = DreamerV2(

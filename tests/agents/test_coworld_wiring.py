@@ -345,9 +345,9 @@ def _record_schedule(monkeypatch: pytest.MonkeyPatch, crash_at_first_relabelled_
         )
         return out
 
-    def relabel(pred: Tensor, reward: Tensor, k: float) -> Tensor:
+    def relabel(pred: Tensor, reward: Tensor, k: float, form: str = "table3") -> Tensor:
         events.append(("relabel", reward.detach().clone(), k))
-        return relabel_reward(pred, reward, k)
+        return relabel_reward(pred, reward, k, form)
 
     monkeypatch.setattr(CoWorld, "train_target", target)
     monkeypatch.setattr(CoWorld, "train_source", source)
