@@ -66,6 +66,10 @@ def unsupported(world_model: WorldModel) -> str:
 
 _SERVED_CONV = "a ConvTranspose2d of stride 2 (no padding, dilation or groups)"
 
+_ACTIVATION_NAMES = [cls.__name__ for cls in ACTIVATIONS.values()]
+_SERVED_ACTIVATION = f"{', '.join(_ACTIVATION_NAMES[:-1])} or {_ACTIVATION_NAMES[-1]}"
+"""The elementwise activations the phase forms apply as they are: 'ELU, SiLU, ReLU, GELU or Tanh'."""
+
 
 def _is_stride2_transposed(conv: nn.Module) -> bool:
     """Whether ``conv`` is a plain transposed convolution of stride 2, the form the phase kernels take."""
@@ -110,7 +114,7 @@ def _between_convolutions(layers: list[nn.Module], convs: list[int], norm: str) 
         if len(gap) != 1:
             return (
                 f"the decoder has {_names(gap) or 'nothing'} between its transposed convolutions {number} and"
-                f" {number + 1} (the fast path serves one elementwise activation there)"
+                f" {number + 1} (the fast path serves one {_SERVED_ACTIVATION} there)"
             )
     outside = {"after its last": layers[convs[-1] + 1 :], "before its first": layers[: convs[0]]}
     for where, extra in outside.items():
@@ -132,12 +136,13 @@ def _other_layers(others: list[list[nn.Module]], norm: str) -> str:
         pairs = [f"{number} and {number + 1}" for number, gap in enumerate(others, 1) if gap]
         where = f"between its transposed convolutions {', '.join(pairs)}"
     names = " and ".join(_article(name) for name in found)
-    return f"the decoder has {names} {where} ({setting}the fast path serves an elementwise activation alone there)"
+    return f"the decoder has {names} {where} ({setting}the fast path serves an {_SERVED_ACTIVATION} alone there)"
 
 
 def _names(layers: list[nn.Module]) -> str:
-    """``layers`` by class, in order: 'an ELU, a Tanh'."""
-    return ", ".join(_article(type(layer).__name__) for layer in layers)
+    """``layers`` by class, in order: 'an ELU and a Tanh'."""
+    names = [_article(type(layer).__name__) for layer in layers]
+    return " and ".join([", ".join(names[:-1]), names[-1]]) if len(names) > 1 else "".join(names)
 
 
 def _article(name: str) -> str:

@@ -233,6 +233,11 @@ def decoder_layer_replaced(index: int, make: Callable[[nn.ConvTranspose2d], nn.M
     return edit
 
 
+def second_activation_in_the_decoder(model: WorldModel) -> None:
+    layers = list(model.decoder.net)
+    model.decoder.net = nn.Sequential(*layers[:4], nn.Tanh(), *layers[4:])
+
+
 def tanh_after_the_decoder(model: WorldModel) -> None:
     model.decoder.net = nn.Sequential(*model.decoder.net, nn.Tanh())
 
@@ -242,14 +247,14 @@ STRUCTURE_REASONS = {
     "GroupNorm in the decoder": (
         [],
         group_norm_in_decoder,
-        "the decoder has a GroupNorm between its transposed convolutions 1 and 2 (the fast path serves an"
-        " elementwise activation alone there)",
+        "the decoder has a GroupNorm between its transposed convolutions 1 and 2 (the fast path serves an ELU,"
+        " SiLU, ReLU, GELU or Tanh alone there)",
     ),
     "act=silu, norm=layer": (
         ["world_model.act=silu", "world_model.norm=layer"],
         None,
         "the decoder has a ChannelNorm after each transposed convolution but the last (world_model.norm=layer;"
-        " the fast path serves an elementwise activation alone there)",
+        " the fast path serves an ELU, SiLU, ReLU, GELU or Tanh alone there)",
     ),
     "other decoder kernels": (
         ["world_model.decoder_kernels=2,2,2,2,2,2"],
@@ -267,6 +272,18 @@ STRUCTURE_REASONS = {
         decoder_layer_replaced(4, lambda t: nn.ConvTranspose2d(t.in_channels, t.out_channels, 6, padding=2)),
         "decoder layer 3 (decoder.net[4]) is a ConvTranspose2d of stride 1, padding 2, not a ConvTranspose2d of"
         " stride 2 (no padding, dilation or groups)",
+    ),
+    "a LeakyReLU for the first activation": (
+        [],
+        decoder_layer_replaced(1, lambda _: nn.LeakyReLU()),
+        "the decoder has a LeakyReLU between its transposed convolutions 1 and 2 (the fast path serves an ELU,"
+        " SiLU, ReLU, GELU or Tanh alone there)",
+    ),
+    "a second activation": (
+        [],
+        second_activation_in_the_decoder,
+        "the decoder has an ELU and a Tanh between its transposed convolutions 2 and 3 (the fast path serves one ELU,"
+        " SiLU, ReLU, GELU or Tanh there)",
     ),
     "a Tanh after the last transposed convolution": (
         [],
