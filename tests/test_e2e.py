@@ -39,22 +39,30 @@ def cli(*args: str, timeout: int = 600) -> subprocess.CompletedProcess:
     return proc
 
 
+def collect_args(out: Path, task: str, *extra: str) -> list[str]:
+    """``coworld collect`` of ``task`` by the tiny preset's DreamerV2 into ``out``, quietly, then ``extra``."""
+    return ["collect", "--task", task, "--preset", "tiny", "--out", str(out), "--quiet", *extra]
+
+
+def train_args(
+    run: Path,
+    dataset: Path,
+    *extra: str,
+    algo: str | None = None,
+    source: str | None = "toy_reach",
+    target: str = "toy_reach_shifted",
+) -> list[str]:
+    """``coworld train`` of ``algo`` (CoWorld's default when None) from ``source`` (none when None) to ``target``
+    on ``dataset`` with the tiny preset, into ``run`` without a progress bar, then ``extra``."""
+    args = ["train", *(["--algo", algo] if algo else []), *(["--source", source] if source else [])]
+    args += ["--target", target, "--dataset", str(dataset), "--preset", "tiny", "--logdir", str(run), "--no-progress"]
+    return [*args, *extra]
+
+
 @pytest.fixture(scope="module")
 def toy_dataset(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("e2e") / "toy_reach_shifted-medium_replay.h5"
-    cli(
-        "collect",
-        "--task",
-        "toy_reach_shifted",
-        "--preset",
-        "tiny",
-        "--max-steps",
-        "300",
-        "--out",
-        str(out),
-        "--quiet",
-        *FAST,
-    )
+    cli(*collect_args(out, "toy_reach_shifted", "--max-steps", "300", *FAST))
     return out
 
 
@@ -63,22 +71,7 @@ def test_collect_train_eval(toy_dataset, tmp_path):
         assert data.num_steps == 300 and data.complete
         assert data.metadata["collector"]["algorithm"] == "dreamerv2"
     run = tmp_path / "run"
-    cli(
-        "train",
-        "--source",
-        "toy_reach",
-        "--target",
-        "toy_reach_shifted",
-        "--dataset",
-        str(toy_dataset),
-        "--preset",
-        "tiny",
-        "--logdir",
-        str(run),
-        "--no-progress",
-        *FAST,
-        *SCHEDULE,
-    )
+    cli(*train_args(run, toy_dataset, *FAST, *SCHEDULE))
     state = torch.load(run / "checkpoint.pt", weights_only=True)
     assert state["kind"] == "coworld" and state["progress"]["iteration"] == 2
     assert state["agent"]["updates"] == 8  # K1 = 4 target updates in each of 2 iterations
@@ -107,22 +100,7 @@ def test_collect_train_eval(toy_dataset, tmp_path):
 
 def test_offline_dreamerv2_baseline(toy_dataset, tmp_path):
     run = tmp_path / "dv2"
-    cli(
-        "train",
-        "--algo",
-        "dreamerv2",
-        "--target",
-        "toy_reach_shifted",
-        "--dataset",
-        str(toy_dataset),
-        "--preset",
-        "tiny",
-        "--logdir",
-        str(run),
-        "--no-progress",
-        *FAST,
-        *SCHEDULE,
-    )
+    cli(*train_args(run, toy_dataset, *FAST, *SCHEDULE, algo="dreamerv2", source=None))
     state = torch.load(run / "checkpoint.pt", weights_only=True)
     assert state["kind"] == "dreamerv2-offline" and state["updates"] == 8  # same target budget as CoWorld
     assert not (run / "source_replay.h5").exists()  # no environment interaction while training
@@ -140,25 +118,7 @@ def test_offline_dreamerv2_baseline(toy_dataset, tmp_path):
 
 def test_kill_during_training_resumes(toy_dataset, tmp_path):
     run = tmp_path / "run"
-    args = [
-        *CLI,
-        "train",
-        "--source",
-        "toy_reach",
-        "--target",
-        "toy_reach_shifted",
-        "--dataset",
-        str(toy_dataset),
-        "--preset",
-        "tiny",
-        "--logdir",
-        str(run),
-        "--no-progress",
-        *FAST,
-        *SCHEDULE,
-        "--set",
-        "coworld.target_updates=30",
-    ]
+    args = [*CLI, *train_args(run, toy_dataset, *FAST, *SCHEDULE, "--set", "coworld.target_updates=30")]
     proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
     deadline = time.time() + 600
     while not (run / "checkpoint.pt").exists() and time.time() < deadline and proc.poll() is None:
@@ -185,35 +145,9 @@ def test_kill_during_training_resumes(toy_dataset, tmp_path):
 @pytest.mark.slow
 def test_walker_quickstart_pipeline(tmp_path):
     out = tmp_path / "walker_uphill-medium_replay.h5"
-    cli(
-        "collect",
-        "--task",
-        "walker_uphill",
-        "--preset",
-        "tiny",
-        "--max-steps",
-        "2000",
-        "--out",
-        str(out),
-        "--quiet",
-        timeout=1800,
-    )
+    cli(*collect_args(out, "walker_uphill", "--max-steps", "2000"), timeout=1800)
     run = tmp_path / "run"
-    cli(
-        "train",
-        "--source",
-        "walker_walk",
-        "--target",
-        "walker_uphill",
-        "--dataset",
-        str(out),
-        "--preset",
-        "tiny",
-        "--logdir",
-        str(run),
-        "--no-progress",
-        timeout=1800,
-    )
+    cli(*train_args(run, out, source="walker_walk", target="walker_uphill"), timeout=1800)
     proc = cli("eval", "--ckpt", str(run), "--episodes", "2", "--workers", "2", timeout=1800)
     assert "walker_uphill: return" in proc.stdout
 
@@ -221,30 +155,8 @@ def test_walker_quickstart_pipeline(tmp_path):
 @pytest.mark.parametrize("algo", ["curl", "curl-cql"])
 def test_model_free_baselines_train_and_eval(toy_dataset, tmp_path, algo):
     run = tmp_path / algo
-    proc = cli(
-        "train",
-        "--algo",
-        algo,
-        "--source",
-        "toy_reach",
-        "--target",
-        "toy_reach_shifted",
-        "--dataset",
-        str(toy_dataset),
-        "--preset",
-        "tiny",
-        "--logdir",
-        str(run),
-        "--no-progress",
-        "--device",
-        "cpu",
-        "--set",
-        "curl.updates=20",
-        "--set",
-        "curl.eval_every=20",
-        "--set",
-        "curl.checkpoint_every=10",
-    )
+    sets = ["--set", "curl.updates=20", "--set", "curl.eval_every=20", "--set", "curl.checkpoint_every=10"]
+    proc = cli(*train_args(run, toy_dataset, "--device", "cpu", *sets, algo=algo))
     assert f"--source is not used by {algo}" in proc.stderr
     state = torch.load(run / "checkpoint.pt", weights_only=True)
     assert state["kind"] == algo and state["updates"] == 20
@@ -257,22 +169,7 @@ def test_model_free_baselines_train_and_eval(toy_dataset, tmp_path, algo):
 
 def test_kill_during_collect_then_resume(tmp_path):
     out = tmp_path / "toy.h5"
-    args = [
-        *CLI,
-        "collect",
-        "--task",
-        "toy_reach",
-        "--preset",
-        "tiny",
-        "--max-steps",
-        "600",
-        "--out",
-        str(out),
-        "--quiet",
-        *FAST,
-        "--set",
-        "train.checkpoint_every=50",
-    ]
+    args = [*CLI, *collect_args(out, "toy_reach", "--max-steps", "600", *FAST, "--set", "train.checkpoint_every=50")]
     proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
     checkpoint = tmp_path / "toy.run" / "checkpoint.pt"
     deadline = time.time() + 600
@@ -308,9 +205,8 @@ def test_lompo_and_the_ewc_fine_tuned_dreamerv2_train_on_a_random_dataset_and_ev
     data = tmp_path / "D.h5"
     cli("collect", "--task", "toy_reach_shifted", "--policy", "random", "--episodes", "5", "--out", str(data))
     run = tmp_path / algo
-    source = ["--source", "toy_reach", *FAST, "--set", "coworld.pretrain_steps=200"] if algo != "lompo" else FAST
-    cli("train", "--algo", algo, "--target", "toy_reach_shifted", "--dataset", str(data), "--preset", "tiny",
-        "--logdir", str(run), "--no-progress", *source)  # fmt: skip
+    extra = ["--source", "toy_reach", *FAST, "--set", "coworld.pretrain_steps=200"] if algo != "lompo" else FAST
+    cli(*train_args(run, data, *extra, algo=algo, source=None))
     state = torch.load(run / "checkpoint.pt", weights_only=True)
     assert state["kind"] == algo and state["updates"] == 40  # the tiny preset's 2 x 20 target updates
     keys = set().union(*(record.keys() for record in read_metrics(run)))

@@ -61,7 +61,7 @@ from coworld.losses.curl import (
 )
 from coworld.models.curl import Actor, BilinearSimilarity, Critic, center_crop, random_crop, squashed_gaussian_sample
 
-__all__ = ["Curl", "load_networks", "make_sampler", "polyak", "stack_frames"]
+__all__ = ["Curl", "FrameStackAgent", "load_networks", "make_sampler", "polyak", "stack_frames"]
 
 PolicyState = np.ndarray | None
 """Frame stack of each environment, ``uint8 (N, k*C, H, W)``; None at the start of a run."""
@@ -145,20 +145,32 @@ def polyak(target: nn.Module, source: nn.Module, tau: float) -> None:
             t.lerp_(s, tau)
 
 
-class Curl:
-    """CURL (``cql=False``) or CURL+CQL (``cql=True``) agent for offline training from pixels.
+class FrameStackAgent:
+    """What the pixel baselines (:class:`Curl`, :class:`coworld.agents.drq_bc.DrqBc`) share: a :class:`Critic`
+    (a pixel encoder of frame stacks and twin Q-functions), its target copy and an actor on the critic's conv
+    features; acting on frame stacks; checkpoints of the networks, the optimisers and the update counter.
 
     Args:
-        config: the run's config; this agent reads ``config.curl``.
+        config: the run's config; the agent reads its section :attr:`config_section`.
         action_size: ``A``; actions live in ``[-1, 1]^A``.
-        image_shape: ``(H, W, C)`` of one frame.
+        image_shape: ``(H, W, C)`` of one frame (square).
         device: torch device.
-        cql: add the CQL(H) penalty to the critic loss.
 
-    API: :meth:`train` (one update from a :class:`~coworld.data.transitions.TransitionSampler` batch),
-    :meth:`policy` (actions from single frames; the agent keeps the frame stack in ``state``),
-    :meth:`state_dict` / :meth:`load_state_dict` (everything needed to resume, ``weights_only``-loadable).
+    A subclass names its section, actor class and checkpoint kind, makes its optimisers (:meth:`_add_parts`) and
+    says what its actor does (:meth:`eval_action`, :meth:`train_action`) and what its networks read of a frame stack
+    (:meth:`frames`, :meth:`input_side`).
     """
+
+    name = "a pixel baseline"
+    """The algorithm as an error names it."""
+    config_section: str
+    """The config section the agent reads (``frame_stack``, ``num_filters``, ``num_layers``, ``feature_dim``,
+    ``hidden`` and its own settings)."""
+    actor_class: type[nn.Module]
+    """The actor, built on the critic's conv features."""
+    kind: str
+    """The checkpoint's kind."""
+    optimizers: dict[str, torch.optim.Optimizer]
 
     def __init__(
         self,
@@ -167,40 +179,141 @@ class Curl:
         action_size: int,
         image_shape: tuple[int, int, int] = (64, 64, 3),
         device: str | torch.device = "cpu",
-        cql: bool = False,
     ) -> None:
-        cfg = config.curl
+        cfg = getattr(config, self.config_section)
         self.cfg = cfg
-        self.cql = cql
         self.action_size = action_size
         self.image_shape = tuple(image_shape)
         self.device = torch.device(device)
         H, W, C = self.image_shape
         if H != W:
-            raise ValueError(f"CURL expects square frames, got {H} x {W}")
+            raise ValueError(f"{self.name} expects square frames, got {H} x {W}")
         self.channels = C * cfg.frame_stack
-        self.target_entropy = -float(action_size)
-        self.critic = Critic(
-            channels=self.channels,
-            size=cfg.crop,
-            num_filters=cfg.num_filters,
-            num_layers=cfg.num_layers,
-            feature_dim=cfg.feature_dim,
-            hidden=cfg.hidden,
-            action_size=action_size,
-        ).to(self.device)
+        sizes = {key: getattr(cfg, key) for key in ("num_filters", "num_layers", "feature_dim", "hidden")}
+        self.critic = Critic(channels=self.channels, size=self.input_side(), action_size=action_size, **sizes)
+        self.critic.to(self.device)
         self.critic_target = copy.deepcopy(self.critic)
         self.critic_target.requires_grad_(False)
-        self.actor = Actor(
-            trunk_dim=self.critic.encoder.trunk.out_dim,
-            feature_dim=cfg.feature_dim,
-            hidden=cfg.hidden,
-            action_size=action_size,
-        ).to(self.device)
+        trunk, actor = self.critic.encoder.trunk.out_dim, self.actor_class
+        self.actor = actor(trunk_dim=trunk, feature_dim=cfg.feature_dim, hidden=cfg.hidden, action_size=action_size)
+        self.actor.to(self.device)
+        self.updates = 0
+        """Gradient updates done so far."""
+        self._add_parts()
+
+    def _add_parts(self) -> None:
+        """What a subclass adds (its optimisers, its own networks and state), made once the critic and the actor
+        are, so their initial weights are drawn after theirs."""
+        raise NotImplementedError
+
+    def input_side(self) -> int:
+        """Side of the (square) images the encoder reads: the frame's."""
+        return self.image_shape[0]
+
+    # -- acting ------------------------------------------------------------------------------------------------------
+    def frames(self, stack: np.ndarray) -> Tensor:
+        """Frame stacks ``uint8 (N, k*C, H, W)`` as the networks read them when acting (on the device)."""
+        return torch.as_tensor(stack, device=self.device)
+
+    def eval_action(self, conv: Tensor) -> Tensor:
+        """The actor's evaluation action ``(N, A)`` at conv features ``(N, D)``."""
+        raise NotImplementedError
+
+    def train_action(self, conv: Tensor) -> Tensor:
+        """The actor's training (exploring) action ``(N, A)`` at conv features ``(N, D)``."""
+        raise NotImplementedError
+
+    def policy(
+        self, obs: np.ndarray, state: PolicyState, mode: str = "eval", is_first: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Actions for ``N`` environments from their newest frames.
+
+        Args:
+            obs: ``uint8 (N, H, W, C)`` the newest frame of each environment.
+            state: the frame stacks returned by the previous call, or None at the start (every row starts).
+            mode: ``'eval'`` (:meth:`eval_action`) or ``'train'`` (:meth:`train_action`).
+            is_first: ``(N,) bool``: rows whose episode starts at this frame; their stack is reset to ``k``
+                copies of the frame.
+
+        Returns:
+            ``(action float32 (N, A) in [-1, 1], state uint8 (N, k*C, H, W))``.
+        """
+        if mode not in ("eval", "train"):
+            raise ValueError(f"mode must be 'eval' or 'train', got {mode!r}")
+        stack = stack_frames(
+            obs, state, frame_stack=self.cfg.frame_stack, image_shape=self.image_shape, is_first=is_first
+        )
+        with torch.no_grad():
+            conv = self.critic.encoder.trunk(self.frames(stack))
+            action = self.eval_action(conv) if mode == "eval" else self.train_action(conv)
+        return action.cpu().numpy().astype(np.float32), stack
+
+    def value(self, state: np.ndarray) -> np.ndarray:
+        """The critic's estimate ``min(Q1, Q2)(s, a_eval)`` of the eval action at the stacks ``state``.
+
+        Args:
+            state: ``uint8 (N, k*C, H, W)``, the stacks :meth:`policy` just returned.
+
+        Returns:
+            ``(N,) float64``, for the evaluator's value check (critic estimate vs the discounted return received).
+        """
+        with torch.no_grad():
+            conv = self.critic.encoder.trunk(self.frames(state))
+            q1, q2 = self.critic(self.critic.encoder.head(conv), self.eval_action(conv))
+        return torch.minimum(q1, q2).cpu().numpy().astype(np.float64)
+
+    # -- checkpoints -------------------------------------------------------------------------------------------------
+    def networks(self) -> dict[str, nn.Module]:
+        """The networks a checkpoint holds, by name."""
+        return {"critic": self.critic, "critic_target": self.critic_target, "actor": self.actor}
+
+    def state_dict(self) -> dict[str, Any]:
+        """Networks, target networks, optimisers and the update counter (tensors and plain data)."""
+        return {
+            "kind": self.kind,
+            "action_size": self.action_size,
+            "updates": self.updates,
+            **{name: network.state_dict() for name, network in self.networks().items()},
+            "optimizers": {name: opt.state_dict() for name, opt in self.optimizers.items()},
+        }
+
+    def load_state_dict(self, state: Mapping[str, Any]) -> None:
+        """Restore what :meth:`state_dict` saved; another agent's checkpoint, or one of another action size, is
+        refused with one line."""
+        load_networks(state, kind=self.kind, action_size=self.action_size, networks=self.networks(),
+                      optimizers=self.optimizers)  # fmt: skip
+        self.updates = int(state["updates"])
+
+
+class Curl(FrameStackAgent):
+    """CURL (``cql=False``) or CURL+CQL (``cql=True``) agent for offline training from pixels.
+
+    Args:
+        cql: add the CQL(H) penalty to the critic loss.
+        kwargs: :class:`FrameStackAgent`'s (``config``, ``action_size``, ``image_shape``, ``device``); this agent
+            reads ``config.curl``.
+
+    API: :meth:`train` (one update from a :class:`~coworld.data.transitions.TransitionSampler` batch),
+    :meth:`policy` (actions from single frames; the agent keeps the frame stack in ``state``),
+    :meth:`state_dict` / :meth:`load_state_dict` (everything needed to resume, ``weights_only``-loadable).
+    """
+
+    name = "CURL"
+    config_section = "curl"
+    actor_class = Actor
+
+    def __init__(self, *, cql: bool = False, **kwargs: Any) -> None:
+        self.cql = cql
+        super().__init__(**kwargs)
+
+    def _add_parts(self) -> None:
+        """The contrastive ``W``, the temperature and the optimisers."""
+        cfg = self.cfg
+        self.target_entropy = -float(self.action_size)
         self.similarity = BilinearSimilarity(cfg.feature_dim).to(self.device)
         self.log_alpha = torch.tensor(np.log(cfg.init_temperature), dtype=torch.float32, device=self.device)
         self.log_alpha.requires_grad_(True)
-        self.optimizers: dict[str, torch.optim.Optimizer] = {
+        self.optimizers = {
             "critic": torch.optim.Adam(self.critic.parameters(), lr=cfg.critic_lr, betas=(0.9, 0.999)),
             "actor": torch.optim.Adam(self.actor.parameters(), lr=cfg.actor_lr, betas=(0.9, 0.999)),
             "alpha": torch.optim.Adam([self.log_alpha], lr=cfg.alpha_lr, betas=(0.5, 0.999)),
@@ -208,8 +321,6 @@ class Curl:
                 [*self.critic.encoder.parameters(), *self.similarity.parameters()], lr=cfg.encoder_lr
             ),
         }
-        self.updates = 0
-        """Gradient updates done so far (decides actor and target updates)."""
         self._actor_metrics: dict[str, float] = {}
 
     # ----------------------------------------------------------------------------------------------------------
@@ -348,79 +459,43 @@ class Curl:
         return {"curl/loss": loss.item(), "curl/accuracy": accuracy.item()}
 
     # ----------------------------------------------------------------------------------------------------------
-    # Acting
+    # Acting and checkpoints
     # ----------------------------------------------------------------------------------------------------------
 
-    def policy(
-        self,
-        obs: np.ndarray,
-        state: PolicyState,
-        mode: str = "eval",
-        is_first: np.ndarray | None = None,
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """Actions for ``N`` environments from their newest frames.
+    @property
+    def kind(self) -> str:
+        return "curl-cql" if self.cql else "curl"
 
-        Args:
-            obs: ``uint8 (N, H, W, C)`` the newest frame of each environment.
-            state: the frame stacks returned by the previous call, or None at the start (every row starts).
-            mode: ``'eval'`` (the mean action ``tanh(mu)``, centre crop) or ``'train'`` (a sample of the policy).
-            is_first: ``(N,) bool``: rows whose episode starts at this frame; their stack is reset to ``k``
-                copies of the frame.
+    def input_side(self) -> int:
+        """The crop's side."""
+        return self.cfg.crop
 
-        Returns:
-            ``(action float32 (N, A) in [-1, 1], state uint8 (N, k*C, H, W))``.
-        """
-        if mode not in ("eval", "train"):
-            raise ValueError(f"mode must be 'eval' or 'train', got {mode!r}")
-        stack = stack_frames(
-            obs, state, frame_stack=self.cfg.frame_stack, image_shape=self.image_shape, is_first=is_first
-        )
-        with torch.no_grad():
-            images = center_crop(torch.as_tensor(stack, device=self.device), pad=self.cfg.pad, crop=self.cfg.crop)
-            conv = self.critic.encoder.trunk(images)
-            action = self.actor.mode(conv) if mode == "eval" else self.actor.sample(conv)[0]
-        return action.cpu().numpy().astype(np.float32), stack
+    def frames(self, stack: np.ndarray) -> Tensor:
+        """The centre crop of the stacks (evaluation sees the unshifted frame)."""
+        return center_crop(super().frames(stack), pad=self.cfg.pad, crop=self.cfg.crop)
 
-    def value(self, state: np.ndarray) -> np.ndarray:
-        """The critic's estimate ``min(Q1, Q2)(s, a_eval)`` of the eval action at the stacks ``state``.
+    def eval_action(self, conv: Tensor) -> Tensor:
+        """The mean action ``tanh(mu)``."""
+        return self.actor.mode(conv)
 
-        Args:
-            state: ``uint8 (N, k*C, H, W)``, the stacks :meth:`policy` just returned.
+    def train_action(self, conv: Tensor) -> Tensor:
+        """A sample of the policy."""
+        return self.actor.sample(conv)[0]
 
-        Returns:
-            ``(N,) float64``, for the evaluator's value check (critic estimate vs the discounted return received).
-        """
-        with torch.no_grad():
-            images = center_crop(torch.as_tensor(state, device=self.device), pad=self.cfg.pad, crop=self.cfg.crop)
-            conv = self.critic.encoder.trunk(images)
-            q1, q2 = self.critic(self.critic.encoder.head(conv), self.actor.mode(conv))
-        return torch.minimum(q1, q2).cpu().numpy().astype(np.float64)
-
-    # ----------------------------------------------------------------------------------------------------------
-    # Checkpoints
-    # ----------------------------------------------------------------------------------------------------------
+    def networks(self) -> dict[str, nn.Module]:
+        return {**super().networks(), "similarity": self.similarity}
 
     def state_dict(self) -> dict[str, Any]:
-        """Networks, target networks, ``log_alpha``, optimisers and the update counter (tensors and plain data)."""
+        """:meth:`FrameStackAgent.state_dict`, ``log_alpha`` and the latest actor update's metrics."""
         return {
-            "kind": "curl-cql" if self.cql else "curl",
-            "action_size": self.action_size,
-            "updates": self.updates,
-            "critic": self.critic.state_dict(),
-            "critic_target": self.critic_target.state_dict(),
-            "actor": self.actor.state_dict(),
-            "similarity": self.similarity.state_dict(),
+            **super().state_dict(),
             "log_alpha": self.log_alpha.detach().clone(),
-            "optimizers": {name: opt.state_dict() for name, opt in self.optimizers.items()},
             "actor_metrics": dict(self._actor_metrics),
         }
 
     def load_state_dict(self, state: Mapping[str, Any]) -> None:
         """Restore what :meth:`state_dict` saved; a checkpoint of the other variant or action size is refused."""
-        networks = {"critic": self.critic, "critic_target": self.critic_target, "actor": self.actor}
-        load_networks(state, kind="curl-cql" if self.cql else "curl", action_size=self.action_size,
-                      networks={**networks, "similarity": self.similarity}, optimizers=self.optimizers)  # fmt: skip
+        super().load_state_dict(state)
         with torch.no_grad():
             self.log_alpha.copy_(state["log_alpha"])
-        self.updates = int(state["updates"])
         self._actor_metrics = {k: float(v) for k, v in state.get("actor_metrics", {}).items()}

@@ -118,6 +118,11 @@ class DreamerV2:
         self.compiled = config.compile
         if self.compiled:
             self._compile()
+        self._add_parts()
+
+    def _add_parts(self) -> None:
+        """What a subclass adds to the agent (its networks, optimisers, state), made once DreamerV2's own are, so
+        their initial weights are drawn after DreamerV2's; DreamerV2 adds nothing."""
 
     # ------------------------------------------------------------------------------------------------ acting
 

@@ -27,7 +27,6 @@ import torch
 from torch import Tensor, nn
 
 from coworld.agents.dreamerv2 import DreamerV2
-from coworld.config import Config
 from coworld.losses.ewc import ewc_penalty, fisher_diagonal
 from coworld.models.actor_critic import flatten_states
 from coworld.models.networks import frozen_parameters
@@ -41,15 +40,9 @@ NETWORKS = ("world_model", "actor", "critic")
 class EwcDreamerV2(DreamerV2):
     """DreamerV2 whose losses gain EWC's penalty once :meth:`consolidate` has run (reads ``config.ewc``)."""
 
-    def __init__(
-        self,
-        *,
-        config: Config,
-        action_size: int,
-        image_shape: tuple[int, int, int] = (64, 64, 3),
-        device: torch.device | str | None = None,
-    ) -> None:
-        super().__init__(config=config, action_size=action_size, image_shape=image_shape, device=device)
+    def _add_parts(self) -> None:
+        """The EWC anchor and Fisher, empty until :meth:`consolidate`."""
+        super()._add_parts()
         self.anchor: dict[str, dict[str, Tensor]] = {}
         """``network -> parameter name -> theta*``; empty until :meth:`consolidate`."""
         self.fisher: dict[str, dict[str, Tensor]] = {}

@@ -25,7 +25,6 @@ import torch
 from torch import Tensor
 
 from coworld.agents.dreamerv2 import DreamerV2, make_optimizer
-from coworld.config import Config
 from coworld.losses.penalty import head_loss, mean_disagreement, penalised_reward
 from coworld.models.ensemble import DynamicsEnsemble
 from coworld.models.rssm import State
@@ -39,16 +38,10 @@ class PenaltyDreamerV2(DreamerV2):
     section = "penalty"
     """The config section with ``ensemble`` and ``model_updates`` (LOMPO's agent, a subclass, reads ``lompo``)."""
 
-    def __init__(
-        self,
-        *,
-        config: Config,
-        action_size: int,
-        image_shape: tuple[int, int, int] = (64, 64, 3),
-        device: torch.device | str | None = None,
-    ) -> None:
-        super().__init__(config=config, action_size=action_size, image_shape=image_shape, device=device)
-        wm, size = config.world_model, getattr(config, self.section).ensemble
+    def _add_parts(self) -> None:
+        """The ensemble of dynamics heads and its optimiser."""
+        super()._add_parts()
+        wm, size = self.config.world_model, getattr(self.config, self.section).ensemble
         self.ensemble = DynamicsEnsemble(
             size=size, deter=wm.deter, hidden=wm.hidden, stoch=wm.stoch, classes=wm.classes
         ).to(self.device)
@@ -60,7 +53,8 @@ class PenaltyDreamerV2(DreamerV2):
         return self.updates < getattr(self.config, self.section).model_updates
 
     def train(self, batch: Mapping[str, np.ndarray | Tensor]) -> dict[str, float]:
-        """One update of the current phase: world model and heads, or actor-critic on the penalised reward."""
+        """One update of the current phase: world model and heads, or the policy alone (:meth:`train_policy`) on
+        the states the frozen world model observes in the batch."""
         batch_t = self.to_batch(batch)
         if self.model_phase:
             metrics, post = self.train_world_model(batch_t)
@@ -68,18 +62,23 @@ class PenaltyDreamerV2(DreamerV2):
         else:
             with torch.no_grad(), self._autocast():
                 post, _, _ = self.model_path.observe(batch_t)
-            post = {key: value.detach() for key, value in post.items()}
-            seen: dict[str, Tensor] = {}
-
-            def reward(traj: dict[str, Any]) -> Tensor:
-                with torch.no_grad():
-                    disagreement = mean_disagreement(self.ensemble(traj["state"]["deter"]))
-                seen.update(disagreement=disagreement.mean(), raw=traj["reward"].detach().mean())
-                return penalised_reward(traj["reward"], disagreement, self.config.penalty.weight)
-
-            metrics = self.train_actor_critic(post, is_terminal=batch_t["is_terminal"], imagined_reward=reward)
-            metrics.update({f"penalty/{key}": float(value) for key, value in seen.items()})
+            metrics = self.train_policy({key: value.detach() for key, value in post.items()}, batch_t)
         self.updates += 1
+        return metrics
+
+    def train_policy(self, post: State, batch: Mapping[str, Tensor]) -> dict[str, float]:
+        """The actor-critic's step in imagination from posterior states ``(B, T)`` of ``batch``, on the penalised
+        reward."""
+        seen: dict[str, Tensor] = {}
+
+        def reward(traj: dict[str, Any]) -> Tensor:
+            with torch.no_grad():
+                disagreement = mean_disagreement(self.ensemble(traj["state"]["deter"]))
+            seen.update(disagreement=disagreement.mean(), raw=traj["reward"].detach().mean())
+            return penalised_reward(traj["reward"], disagreement, self.config.penalty.weight)
+
+        metrics = self.train_actor_critic(post, is_terminal=batch["is_terminal"], imagined_reward=reward)
+        metrics.update({f"penalty/{key}": float(value) for key, value in seen.items()})
         return metrics
 
     def train_ensemble(self, post: State) -> dict[str, float]:

@@ -24,20 +24,19 @@ encoder and critic together (DrQ-v2 has two with the same learning rate, stepped
 
 from __future__ import annotations
 
-import copy
 from collections.abc import Mapping
-from typing import Any
 
 import numpy as np
 import torch
+from torch import Tensor
 
-from coworld.agents.curl import load_networks, polyak, stack_frames
+from coworld.agents.curl import FrameStackAgent, polyak
 from coworld.config import Config
 from coworld.data.reader import Dataset
 from coworld.data.transitions import TransitionSampler
 from coworld.losses.curl import sac_critic_target, twin_q_loss
 from coworld.losses.drqbc import actor_terms, clipped_noise_action, exploration_std
-from coworld.models.curl import Critic, random_crop
+from coworld.models.curl import random_crop
 from coworld.models.drq import DrqActor
 
 __all__ = ["CHECKPOINT_KIND", "DrqBc", "make_sampler"]
@@ -51,7 +50,7 @@ def make_sampler(dataset: Dataset, config: Config, seed: int) -> TransitionSampl
     return TransitionSampler.from_dataset(dataset, batch_size=cfg.batch_size, frame_stack=cfg.frame_stack, seed=seed)
 
 
-class DrqBc:
+class DrqBc(FrameStackAgent):
     """DrQ+BC agent for offline training from pixels.
 
     API: :meth:`train` (one update from a :class:`~coworld.data.transitions.TransitionSampler` batch),
@@ -59,44 +58,18 @@ class DrqBc:
     :meth:`state_dict` / :meth:`load_state_dict` (``weights_only``-loadable).
     """
 
-    def __init__(
-        self,
-        *,
-        config: Config,
-        action_size: int,
-        image_shape: tuple[int, int, int] = (64, 64, 3),
-        device: str | torch.device = "cpu",
-    ) -> None:
-        cfg = config.drqbc
-        self.cfg = cfg
-        self.action_size = action_size
-        self.image_shape = tuple(image_shape)
-        self.device = torch.device(device)
-        H, W, C = self.image_shape
-        if H != W:
-            raise ValueError(f"DrQ+BC expects square frames, got {H} x {W}")
-        self.critic = Critic(
-            channels=C * cfg.frame_stack,
-            size=H,
-            num_filters=cfg.num_filters,
-            num_layers=cfg.num_layers,
-            feature_dim=cfg.feature_dim,
-            hidden=cfg.hidden,
-            action_size=action_size,
-        ).to(self.device)
-        self.critic_target = copy.deepcopy(self.critic)  # its conv trunk is unused: s' goes through the online one
-        self.critic_target.requires_grad_(False)
-        self.actor = DrqActor(
-            trunk_dim=self.critic.encoder.trunk.out_dim,
-            feature_dim=cfg.feature_dim,
-            hidden=cfg.hidden,
-            action_size=action_size,
-        ).to(self.device)
-        self.optimizers: dict[str, torch.optim.Optimizer] = {
-            "critic": torch.optim.Adam(self.critic.parameters(), lr=cfg.lr),
-            "actor": torch.optim.Adam(self.actor.parameters(), lr=cfg.lr),
+    name = "DrQ+BC"
+    config_section = "drqbc"
+    actor_class = DrqActor
+    kind = CHECKPOINT_KIND
+
+    def _add_parts(self) -> None:
+        """One Adam optimiser for the critic (with the encoder), one for the actor; the target critic's conv trunk
+        is unused (s' goes through the online one)."""
+        self.optimizers = {
+            "critic": torch.optim.Adam(self.critic.parameters(), lr=self.cfg.lr),
+            "actor": torch.optim.Adam(self.actor.parameters(), lr=self.cfg.lr),
         }
-        self.updates = 0
 
     def std(self) -> float:
         """The exploration std at this update (:func:`coworld.losses.drqbc.exploration_std`)."""
@@ -158,45 +131,10 @@ class DrqBc:
         return {key: float(value.detach()) for key, value in values.items()}
 
     # -- acting ------------------------------------------------------------------------------------------------------
-    def policy(
-        self, obs: np.ndarray, state: np.ndarray | None, mode: str = "eval", is_first: np.ndarray | None = None
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """Actions ``float32 (N, A)`` for ``N`` environments' newest frames ``uint8 (N, H, W, C)``; the state is
-        their frame stacks. ``'eval'`` takes the mean action, ``'train'`` adds the clipped noise of the current
-        std."""
-        if mode not in ("eval", "train"):
-            raise ValueError(f"mode must be 'eval' or 'train', got {mode!r}")
-        k = self.cfg.frame_stack
-        stack = stack_frames(obs, state, frame_stack=k, image_shape=self.image_shape, is_first=is_first)
-        with torch.no_grad():
-            mean = self.actor(self.critic.encoder.trunk(torch.as_tensor(stack, device=self.device)))
-            action = mean if mode == "eval" else clipped_noise_action(mean, self.std(), self.cfg.std_clip)
-        return action.cpu().numpy().astype(np.float32), stack
+    def eval_action(self, conv: Tensor) -> Tensor:
+        """The actor's mean action."""
+        return self.actor(conv)
 
-    def value(self, state: np.ndarray) -> np.ndarray:
-        """``min(Q1, Q2)(s, a_eval)`` at the stacks :meth:`policy` just returned, ``(N,) float64``."""
-        with torch.no_grad():
-            conv = self.critic.encoder.trunk(torch.as_tensor(state, device=self.device))
-            q1, q2 = self.critic(self.critic.encoder.head(conv), self.actor(conv))
-        return torch.minimum(q1, q2).cpu().numpy().astype(np.float64)
-
-    # -- checkpoints -------------------------------------------------------------------------------------------------
-    def state_dict(self) -> dict[str, Any]:
-        """Networks, target critic, optimisers and the update counter (tensors and plain data)."""
-        return {
-            "kind": CHECKPOINT_KIND,
-            "action_size": self.action_size,
-            "updates": self.updates,
-            "critic": self.critic.state_dict(),
-            "critic_target": self.critic_target.state_dict(),
-            "actor": self.actor.state_dict(),
-            "optimizers": {name: opt.state_dict() for name, opt in self.optimizers.items()},
-        }
-
-    def load_state_dict(self, state: Mapping[str, Any]) -> None:
-        """Restore what :meth:`state_dict` saved; another agent's checkpoint is refused with one line."""
-        networks = {"critic": self.critic, "critic_target": self.critic_target, "actor": self.actor}
-        load_networks(
-            state, kind=CHECKPOINT_KIND, action_size=self.action_size, networks=networks, optimizers=self.optimizers
-        )
-        self.updates = int(state["updates"])
+    def train_action(self, conv: Tensor) -> Tensor:
+        """The mean action plus the clipped noise of the current std."""
+        return clipped_noise_action(self.actor(conv), self.std(), self.cfg.std_clip)

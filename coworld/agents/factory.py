@@ -2,41 +2,34 @@
 
 from __future__ import annotations
 
+import importlib
 from typing import Any
 
 import torch
 
 from coworld.config import Config
 
+AGENT_CLASSES = {
+    "coworld": "dreamerv2:DreamerV2",
+    "dreamerv2": "dreamerv2:DreamerV2",
+    "dreamerv2-finetune": "dreamerv2:DreamerV2",
+    "curl": "curl:Curl",
+    "curl-cql": "curl:Curl",
+    "dreamerv2-penalty": "dreamerv2_penalty:PenaltyDreamerV2",
+    "lompo": "lompo:Lompo",
+    "dreamerv2-finetune-ewc": "dreamerv2_ewc:EwcDreamerV2",
+    "drq-bc": "drq_bc:DrqBc",
+}
+"""Algorithm -> ``module:class`` (in :mod:`coworld.agents`) of the agent whose ``policy`` is evaluated (for CoWorld:
+the target agent, a DreamerV2)."""
+
 
 def agent_class(algo: str) -> type:
-    """The class of the agent whose ``policy`` is evaluated for ``algo`` (for CoWorld: the target agent, a
-    DreamerV2), imported only when asked for."""
-    if algo in ("coworld", "dreamerv2", "dreamerv2-finetune"):
-        from coworld.agents.dreamerv2 import DreamerV2
-
-        return DreamerV2
-    if algo in ("curl", "curl-cql"):
-        from coworld.agents.curl import Curl
-
-        return Curl
-    if algo == "dreamerv2-penalty":
-        from coworld.agents.dreamerv2_penalty import PenaltyDreamerV2
-
-        return PenaltyDreamerV2
-    if algo == "lompo":
-        from coworld.agents.lompo import Lompo
-
-        return Lompo
-    if algo == "dreamerv2-finetune-ewc":
-        from coworld.agents.dreamerv2_ewc import EwcDreamerV2
-
-        return EwcDreamerV2
-    if algo == "drq-bc":
-        from coworld.agents.drq_bc import DrqBc
-
-        return DrqBc
-    raise ValueError(f"unknown algorithm {algo!r}")
+    """The class of the agent whose ``policy`` is evaluated for ``algo``, imported only when asked for."""
+    if algo not in AGENT_CLASSES:
+        raise ValueError(f"unknown algorithm {algo!r}")
+    module, name = AGENT_CLASSES[algo].split(":")
+    return getattr(importlib.import_module(f"coworld.agents.{module}"), name)
 
 
 def make_agent(algo: str, *, config: Config, action_size: int, device: torch.device | str) -> Any:

@@ -25,13 +25,11 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 
-import numpy as np
 import torch
 from torch import Tensor
 
 from coworld.agents.dreamerv2 import _to_floats, make_optimizer
 from coworld.agents.dreamerv2_penalty import PenaltyDreamerV2
-from coworld.config import Config
 from coworld.distributions import OneHotCategorical
 from coworld.losses.curl import twin_q_loss
 from coworld.losses.lompo import deterministic_actor_loss, log_prob_spread, td_target
@@ -56,35 +54,20 @@ class Lompo(PenaltyDreamerV2):
 
     section = "lompo"
 
-    def __init__(
-        self,
-        *,
-        config: Config,
-        action_size: int,
-        image_shape: tuple[int, int, int] = (64, 64, 3),
-        device: torch.device | str | None = None,
-    ) -> None:
-        super().__init__(config=config, action_size=action_size, image_shape=image_shape, device=device)
-        c = config.lompo
+    def _add_parts(self) -> None:
+        """The ensemble (as the penalised DreamerV2's), then LOMPO's actor-critic and its optimisers in place of
+        DreamerV2's."""
+        super()._add_parts()
+        c = self.config.lompo
         self.actor_critic = LatentActorCritic(
-            config=c, feat_size=self.world_model.feat_size, action_size=action_size
+            config=c, feat_size=self.world_model.feat_size, action_size=self.action_size
         ).to(self.device)
         self.actor_opt = make_optimizer(self.actor_critic.actor.parameters(), lr=c.actor_lr, eps=ADAM_EPS, decay=0.0)
         self.critic_opt = make_optimizer(self.actor_critic.critic.parameters(), lr=c.critic_lr, eps=ADAM_EPS, decay=0.0)
 
-    def train(self, batch: Mapping[str, np.ndarray | Tensor]) -> dict[str, float]:
-        """One update of the current phase: world model and heads, or the latent actor-critic."""
-        batch_t = self.to_batch(batch)
-        if self.model_phase:
-            metrics, post = self.train_world_model(batch_t)
-            metrics.update(self.train_ensemble(post))
-        else:
-            with torch.no_grad(), self._autocast():
-                post, _, _ = self.model_path.observe(batch_t)
-            post = {key: value.detach().float() for key, value in post.items()}
-            metrics = self.train_latent_actor_critic(post, batch_t)
-        self.updates += 1
-        return metrics
+    def train_policy(self, post: State, batch: Mapping[str, Tensor]) -> dict[str, float]:
+        """The policy phase's step: :meth:`train_latent_actor_critic` on the posterior states in float32."""
+        return self.train_latent_actor_critic({key: value.float() for key, value in post.items()}, batch)
 
     @torch.no_grad()
     def real_transitions(self, post: State, batch: Mapping[str, Tensor]) -> Transitions:

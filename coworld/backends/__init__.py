@@ -3,8 +3,9 @@
 The model a researcher reads and edits is :mod:`coworld.models` (plain PyTorch). A fast path reads the same
 weights and computes the same loss in other forms; it trains only where it applies and where it has been checked
 against the reference for the model as built: its structure (:func:`coworld.backends.cpu.unsupported`), then on a
-batch of random frames, in float64 and with perturbed weights, the loss and every gradient
-(:func:`check_against_reference`). ``train.backend``:
+batch of random frames, in float64 and with perturbed weights, the loss and every gradient, each pass from the same
+random state (:func:`check_against_reference`). Where it cannot serve a model, the reason names the layer or the
+loss term that differs, or says the model draws random numbers the check cannot hold equal. ``train.backend``:
 
 * ``reference``: :class:`ReferencePath`, always;
 * ``cpu``: :class:`~coworld.backends.cpu.CpuPath`, or :class:`~coworld.errors.ConfigError` saying why not;
@@ -29,7 +30,7 @@ from coworld.config import Config
 from coworld.errors import ConfigError
 from coworld.models.world_model import WorldModel
 
-__all__ = ["ModelPath", "ReferencePath", "check_against_reference", "select"]
+__all__ = ["ModelPath", "ReferencePath", "check_against_reference", "cpu_reason", "select"]
 
 TOLERANCE = 1e-6
 """The check's bound on ``max |fast - reference|`` over each gradient (and the loss), relative to the reference's
@@ -52,7 +53,7 @@ def select(world_model: WorldModel, config: Config, device: torch.device, autoca
         return ReferencePath(world_model)
     key = _model_key(world_model)
     if key not in _CHECKED:
-        _CHECKED[key] = _cpu_reason(world_model)
+        _CHECKED[key] = cpu_reason(world_model)
         if _CHECKED[key] and wanted == "auto":
             print(
                 f"backend: the CPU fast path steps aside ({_CHECKED[key]}); training with the reference model",
@@ -100,7 +101,7 @@ def _model_key(world_model: WorldModel) -> tuple:
     return repr(world_model), world_model.config, code, methods, world_model_module.preprocess_image
 
 
-def _cpu_reason(world_model: WorldModel) -> str:
+def cpu_reason(world_model: WorldModel) -> str:
     """Why the CPU path cannot serve ``world_model``, or '' where it computes it (structure, then numbers)."""
     from coworld.backends import cpu
 
@@ -113,13 +114,29 @@ def _cpu_reason(world_model: WorldModel) -> str:
     return check_against_reference(world_model, lambda model: cpu.CpuPath(model, *affine))
 
 
+SEED = 0
+"""The global random state every pass of the check starts from (``torch.manual_seed``), inside
+:func:`torch.random.fork_rng`: a model that draws from torch's global generator (a dropout) draws the same numbers
+on both sides, and the caller's random state is left as it was."""
+
+
+UNSEEDED = (
+    "the model draws random numbers beyond its latent noise that the check cannot hold equal (from a generator other"
+    " than torch's global one, say)"
+)
+"""The reason where two passes of the reference from the same seeds differ."""
+
+
 def check_against_reference(world_model: WorldModel, make_path: Any) -> str:
     """'' where the path ``make_path(model)`` computes ``model``'s loss and every gradient as
     :meth:`WorldModel.loss` does, else what differs.
 
     Checked on a float64 copy of ``world_model`` with its weights perturbed (so no head starts at zero and hides a
-    gradient) and a batch of random frames with a sequence starting mid-way, both sides drawing the same latent
-    noise; in float64 the categorical draws of the two sides agree. Nothing of the caller's random state is used.
+    gradient) and a batch of random frames with a sequence starting mid-way. Every pass draws the same latent noise
+    (a generator of its own) and starts from the same global random state (:data:`SEED`); in float64 the categorical
+    draws of the two sides agree. Where two passes of the reference differ, the model draws random numbers the check
+    cannot hold equal, and it says so. The fast path computes :meth:`WorldModel.loss` itself with only its image
+    term replaced, so a difference after that is the image term's.
     """
     generator = torch.Generator().manual_seed(0)
     model = copy.deepcopy(world_model).to(device="cpu", dtype=torch.float64)
@@ -127,22 +144,36 @@ def check_against_reference(world_model: WorldModel, make_path: Any) -> str:
         for param in model.parameters():
             param.add_(0.1 * torch.randn(param.shape, generator=generator, dtype=torch.float64))
     batch = _random_batch(model, generator)
-    try:
-        fast = _loss_and_grads(model, make_path(model), batch)
-    except Exception as error:  # the path cannot run this model: it steps aside, and says so
-        return f"it failed on this model: {type(error).__name__}: {str(error).splitlines()[0][:200]}"
-    try:
-        reference = _loss_and_grads(model, ReferencePath(model), batch)
-    except Exception as error:  # a model the check cannot copy to float64 is not checked, so not taken
-        return f"the check could not run the reference on a float64 copy: {type(error).__name__}"
-    for name, want in reference.items():
-        got = fast.get(name)
-        if got is None or got.shape != want.shape:
-            return f"it has no gradient like the reference's for {name}"
-        scale = float(want.abs().max())
-        error = float((got - want).abs().max())
+    with torch.random.fork_rng(devices=[]):
+        try:
+            reference = _loss_and_grads(model, ReferencePath(model), batch)
+            again = _loss_and_grads(model, ReferencePath(model), batch, grads=False)
+        except Exception as error:  # a model the check cannot copy to float64 is not checked, so not taken
+            return f"the check could not run the reference on a float64 copy: {type(error).__name__}"
+        if _difference(again, {"loss": reference["loss"]}):
+            return UNSEEDED
+        try:
+            fast = _loss_and_grads(model, make_path(model), batch)
+        except Exception as error:  # the path cannot run this model: it steps aside, and says so
+            return f"it failed on this model: {type(error).__name__}: {str(error).splitlines()[0][:200]}"
+    difference = _difference(fast, reference)
+    if difference:
+        return f"the reference's image term (WorldModel.image_nll) is not the one the fast path computes: {difference}"
+    return ""
+
+
+def _difference(got: dict[str, Tensor], want: dict[str, Tensor]) -> str:
+    """The first of ``want``'s entries (the loss, then each parameter's gradient) that ``got`` does not hold to
+    :data:`TOLERANCE`, as a reason; '' where none."""
+    for name, value in want.items():
+        what = "the loss" if name == "loss" else f"{name}'s gradient"
+        other = got.get(name)
+        if other is None or other.shape != value.shape:
+            return f"{what} has no counterpart"
+        scale = float(value.abs().max())
+        error = float((other - value).abs().max())
         if not error <= TOLERANCE * scale + 1e-12:
-            return f"{name} differs from the reference's by {error:.3g} (relative {error / max(scale, 1e-300):.2g})"
+            return f"{what} differs by {error:.3g} (relative {error / max(scale, 1e-300):.2g})"
     return ""
 
 
@@ -162,12 +193,19 @@ def _random_batch(model: WorldModel, generator: torch.Generator, batch: int = 3,
     }
 
 
-def _loss_and_grads(model: WorldModel, path: ModelPath, batch: dict[str, Tensor]) -> dict[str, Tensor]:
-    """The loss and the gradient of every parameter of ``model`` through ``path`` (latent noise from a fixed seed)."""
+def _loss_and_grads(
+    model: WorldModel, path: ModelPath, batch: dict[str, Tensor], grads: bool = True
+) -> dict[str, Tensor]:
+    """The loss and (with ``grads``) the gradient of every parameter of ``model`` through ``path``, the latent noise
+    and the global random state from fixed seeds."""
     model.zero_grad(set_to_none=True)
-    _, aux = path.loss(path.prepare(dict(batch)), torch.Generator().manual_seed(1))
-    aux["loss"].backward()
+    torch.manual_seed(SEED)
+    with torch.set_grad_enabled(grads):
+        _, aux = path.loss(path.prepare(dict(batch)), torch.Generator().manual_seed(1))
     out = {"loss": aux["loss"].detach().reshape(1)}
+    if not grads:
+        return out
+    aux["loss"].backward()
     for name, param in model.named_parameters():
         out[name] = param.grad.detach().clone() if param.grad is not None else torch.zeros_like(param)
     model.zero_grad(set_to_none=True)

@@ -45,25 +45,108 @@ PHASES4_BELOW_DEPTH = 16
 
 def unsupported(world_model: WorldModel) -> str:
     """Why the fast path cannot compute ``world_model``, or '' where its decoder is the one it implements:
-    DreamerV2's (transposed convolutions of kernels 5, 5, 6, 6 and stride 2 from 1 x 1, an elementwise activation
-    between them, no norm)."""
+    DreamerV2's (a linear layer, then transposed convolutions of kernels 5, 5, 6, 6 and stride 2 from 1 x 1, one
+    elementwise activation between each two, no norm). The reason names the part that differs."""
     decoder = world_model.decoder
     for module, cls in ((decoder, ConvDecoder), (world_model, WorldModel)):
         if type(module) is not cls:
             return f"{type(module).__name__} is not {cls.__name__}"
+    if type(decoder.linear) is not nn.Linear:
+        return f"the decoder's first layer (decoder.linear) is a {type(decoder.linear).__name__}, not a Linear"
     layers = list(decoder.net)
-    convs, acts = layers[::2], layers[1::2]
-    if (
-        len(layers) != 2 * len(DECODER_KERNELS) - 1
-        or any(type(conv) is not nn.ConvTranspose2d for conv in convs)
-        or tuple(conv.kernel_size for conv in convs) != tuple((k, k) for k in DECODER_KERNELS)
-        or any(conv.stride != (2, 2) or conv.padding != (0, 0) or conv.output_padding != (0, 0) for conv in convs)
-        or any(conv.dilation != (1, 1) or conv.groups != 1 for conv in convs)
-    ):
-        return "the decoder is not DreamerV2's transposed convolutions (kernels 5, 5, 6, 6, stride 2)"
-    if any(type(act) not in ACTIVATIONS.values() for act in acts):
-        return "the decoder has a layer between its convolutions that is not an elementwise activation"
+    convs = [i for i, layer in enumerate(layers) if isinstance(layer, nn.modules.conv._ConvNd)]
+    for number, i in enumerate(convs, 1):
+        if not _is_stride2_transposed(layers[i]):
+            return f"decoder layer {number} (decoder.net[{i}]) is {_describe_conv(layers[i])}, not {_SERVED_CONV}"
+    kernels = tuple(_kernel(layers[i]) for i in convs)
+    if kernels != DECODER_KERNELS:
+        return f"the decoder's kernels are {kernels}, not DreamerV2's {', '.join(map(str, DECODER_KERNELS))}"
+    return _between_convolutions(layers, convs, world_model.config.norm)
+
+
+_SERVED_CONV = "a ConvTranspose2d of stride 2 (no padding, dilation or groups)"
+
+_ACTIVATION_NAMES = [cls.__name__ for cls in ACTIVATIONS.values()]
+_SERVED_ACTIVATION = f"{', '.join(_ACTIVATION_NAMES[:-1])} or {_ACTIVATION_NAMES[-1]}"
+"""The elementwise activations the phase forms apply as they are: 'ELU, SiLU, ReLU, GELU or Tanh'."""
+
+
+def _is_stride2_transposed(conv: nn.Module) -> bool:
+    """Whether ``conv`` is a plain transposed convolution of stride 2, the form the phase kernels take."""
+    return (
+        type(conv) is nn.ConvTranspose2d
+        and conv.stride == (2, 2)
+        and conv.padding == (0, 0)
+        and conv.output_padding == (0, 0)
+        and conv.dilation == (1, 1)
+        and conv.groups == 1
+    )
+
+
+def _describe_conv(conv: nn.Module) -> str:
+    """``conv`` as a reason reads it: its class and, for a transposed convolution, the settings the fast path does
+    not serve (stride 1, padding 2, say)."""
+    if type(conv) is not nn.ConvTranspose2d:
+        return _article(type(conv).__name__)
+    served = {"stride": (2, 2), "padding": (0, 0), "output_padding": (0, 0), "dilation": (1, 1), "groups": 1}
+    settings = [f"{key} {_plain(getattr(conv, key))}" for key, want in served.items() if getattr(conv, key) != want]
+    return f"a ConvTranspose2d of {', '.join(settings)}"
+
+
+def _plain(value: Any) -> Any:
+    """A square setting ``(k, k)`` as ``k``; anything else as it is."""
+    return value[0] if isinstance(value, tuple) and len(set(value)) == 1 else value
+
+
+def _kernel(conv: nn.Module) -> int | tuple[int, ...]:
+    return _plain(conv.kernel_size)
+
+
+def _between_convolutions(layers: list[nn.Module], convs: list[int], norm: str) -> str:
+    """'' where exactly one elementwise activation stands between each two transposed convolutions (at ``convs`` in
+    ``layers``) and nothing before the first or after the last, else what stands there instead (``norm``: the
+    config's, named where it put the layers)."""
+    gaps = [layers[a + 1 : b] for a, b in zip(convs, convs[1:], strict=False)]
+    others = [[layer for layer in gap if type(layer) not in ACTIVATIONS.values()] for gap in gaps]
+    if any(others):
+        return _other_layers(others, norm)
+    for number, gap in enumerate(gaps, 1):
+        if len(gap) != 1:
+            return (
+                f"the decoder has {_names(gap) or 'nothing'} between its transposed convolutions {number} and"
+                f" {number + 1} (the fast path serves one {_SERVED_ACTIVATION} there)"
+            )
+    outside = {"after its last": layers[convs[-1] + 1 :], "before its first": layers[: convs[0]]}
+    for where, extra in outside.items():
+        if extra:
+            return f"the decoder has {_names(extra)} {where} transposed convolution (the fast path serves none there)"
     return ""
+
+
+def _other_layers(others: list[list[nn.Module]], norm: str) -> str:
+    """The reason for layers other than an activation between the decoder's transposed convolutions (``others``:
+    those of each gap)."""
+    found = sorted({type(layer).__name__ for gap in others for layer in gap})
+    setting = ""
+    if all(others):
+        where = "after each transposed convolution but the last"
+        if norm != "none" and found == ["ChannelNorm"]:
+            setting = f"world_model.norm={norm}; "
+    else:
+        pairs = [f"{number} and {number + 1}" for number, gap in enumerate(others, 1) if gap]
+        where = f"between its transposed convolutions {', '.join(pairs)}"
+    names = " and ".join(_article(name) for name in found)
+    return f"the decoder has {names} {where} ({setting}the fast path serves an {_SERVED_ACTIVATION} alone there)"
+
+
+def _names(layers: list[nn.Module]) -> str:
+    """``layers`` by class, in order: 'an ELU and a Tanh'."""
+    names = [_article(type(layer).__name__) for layer in layers]
+    return " and ".join([", ".join(names[:-1]), names[-1]]) if len(names) > 1 else "".join(names)
+
+
+def _article(name: str) -> str:
+    return f"{'an' if name[0] in 'AEIOU' else 'a'} {name}"
 
 
 def pixel_affine() -> tuple[float, float] | None:

@@ -20,6 +20,7 @@ import numpy as np
 from coworld import interrupt
 from coworld.config import to_dict
 from coworld.data.prefetch import prefetched, stop_prefetch
+from coworld.errors import CheckpointError
 from coworld.progress import progress_bar
 from coworld.training.checkpoint import (
     CHECKPOINT_NAME,
@@ -37,6 +38,27 @@ CHECKPOINT_KEYS = ("agent", "updates", "last_eval", "rng")
 """What an offline run's checkpoint holds beyond its kind (:meth:`OfflineTrainer.save`)."""
 
 SamplerFactory = Callable[[int], Iterator[dict[str, np.ndarray]]]
+
+
+def read_run_checkpoint(path: Path, agent: Any, kind: str, keys: tuple[str, ...]) -> dict[str, Any]:
+    """The checkpoint at ``path`` of a run of ``kind`` (an offline or an online one), its tensors on ``agent``'s
+    device, holding ``keys``; one of another kind is refused (CheckpointError)."""
+    state = load_checkpoint(path, map_location=getattr(agent, "device", "cpu"), keys=keys)
+    if state.get("kind") != kind:
+        raise CheckpointError(f"{path} is a {state.get('kind')!r} checkpoint, not {kind!r}")
+    return state
+
+
+def restore_agent(agent: Any, state: dict[str, Any], path: Path, what: str) -> None:
+    """Load a run checkpoint's ``state`` (from ``path``) into ``agent`` (described as ``what`` where it does not
+    fit), and the random state the run had when it was saved."""
+    load_agent_state(agent, state["agent"], path, what)
+    set_rng_state(state["rng"])
+
+
+def run_state(kind: str, task: str, config: Any, agent: Any) -> dict[str, Any]:
+    """What every run checkpoint holds beyond its counters: its kind, task, config, agent and random state."""
+    return {"kind": kind, "task": task, "config": to_dict(config), "agent": agent.state_dict(), "rng": rng_state()}
 
 
 @dataclass(frozen=True)
@@ -105,32 +127,15 @@ class OfflineTrainer:
         """Load the last checkpoint of this run folder, if any; True when resumed."""
         if not self.checkpoint_path.exists():
             return False
-        state = load_checkpoint(
-            self.checkpoint_path, map_location=getattr(self.agent, "device", "cpu"), keys=CHECKPOINT_KEYS
-        )
-        if state.get("kind") != self.kind:
-            from coworld.errors import CheckpointError
-
-            raise CheckpointError(f"{self.checkpoint_path} is a {state.get('kind')!r} checkpoint, not {self.kind!r}")
-        load_agent_state(self.agent, state["agent"], self.checkpoint_path, f"a {self.kind} agent of this config")
+        state = read_run_checkpoint(self.checkpoint_path, self.agent, self.kind, CHECKPOINT_KEYS)
+        restore_agent(self.agent, state, self.checkpoint_path, f"a {self.kind} agent of this config")
         self.updates = int(state["updates"])
         self.last_eval = state["last_eval"]
-        set_rng_state(state["rng"])
         return True
 
     def save(self) -> None:
-        save_checkpoint(
-            self.checkpoint_path,
-            {
-                "kind": self.kind,
-                "task": self.task,
-                "config": to_dict(self.config),
-                "agent": self.agent.state_dict(),
-                "updates": self.updates,
-                "last_eval": self.last_eval,
-                "rng": rng_state(),
-            },
-        )
+        state = run_state(self.kind, self.task, self.config, self.agent)
+        save_checkpoint(self.checkpoint_path, {**state, "updates": self.updates, "last_eval": self.last_eval})
 
     def run(self, *, progress: bool = True) -> OfflineResult:
         s = self.schedule

@@ -43,20 +43,13 @@ import numpy as np
 import torch
 
 from coworld import envs, interrupt
-from coworld.config import Config, to_dict
+from coworld.config import Config
 from coworld.data import DatasetWriter, open_dataset
-from coworld.errors import CheckpointError
 from coworld.progress import progress_bar
-from coworld.training.checkpoint import (
-    CHECKPOINT_NAME,
-    load_agent_state,
-    load_checkpoint,
-    rng_state,
-    save_checkpoint,
-    set_rng_state,
-)
+from coworld.training.checkpoint import CHECKPOINT_NAME, save_checkpoint
 from coworld.training.evaluate import evaluate
 from coworld.training.logger import Logger, Rate
+from coworld.training.offline import read_run_checkpoint, restore_agent, run_state
 from coworld.training.openloop import log_open_loop
 from coworld.training.replay import Replay
 
@@ -215,13 +208,7 @@ class OnlineTrainer:
         """
         state = None
         if self.checkpoint_path.exists():
-            state = load_checkpoint(
-                self.checkpoint_path, map_location=getattr(self.agent, "device", "cpu"), keys=CHECKPOINT_KEYS
-            )
-            if state["kind"] != CHECKPOINT_KIND:
-                raise CheckpointError(
-                    f"{self.checkpoint_path} is a {state['kind']!r} checkpoint, not {CHECKPOINT_KIND!r}"
-                )
+            state = read_run_checkpoint(self.checkpoint_path, self.agent, CHECKPOINT_KIND, CHECKPOINT_KEYS)
         if rollback:
             seen = 0 if state is None else state.get("episodes", self.writer.num_episodes)
             self.writer.keep_episodes(min(int(seen), self.writer.num_episodes))
@@ -230,11 +217,10 @@ class OnlineTrainer:
         self.steps = self.writer.num_steps
         if state is None:
             return None
-        load_agent_state(self.agent, state["agent"], self.checkpoint_path, "an online dreamerv2 agent of this config")
+        restore_agent(self.agent, state, self.checkpoint_path, "an online dreamerv2 agent of this config")
         self.updates = int(state["updates"])
         self.last_eval = state["last_eval"]
         self.last_eval_step = int(state["last_eval_step"])
-        set_rng_state(state["rng"])
         if "act_rng" in state:  # checkpoints from before acting had its own generator start it afresh
             self.act_rng.set_state(state["act_rng"])
         return state
@@ -242,16 +228,12 @@ class OnlineTrainer:
     def save(self) -> None:
         self._finish_update()
         state = {
-            "kind": CHECKPOINT_KIND,
-            "task": self.task,
-            "config": to_dict(self.config),
-            "agent": self.agent.state_dict(),
+            **run_state(CHECKPOINT_KIND, self.task, self.config, self.agent),
             "steps": self.steps,
             "episodes": self.writer.num_episodes,
             "updates": self.updates,
             "last_eval": self.last_eval,
             "last_eval_step": self.last_eval_step,
-            "rng": rng_state(),
             "act_rng": self.act_rng.get_state(),
         }
         if self.checkpoint_extra is not None:

@@ -5,11 +5,19 @@
 * A fast path that computes another model is caught: ``auto`` steps aside with one line, ``cpu`` is refused.
 * The CPU path equals the reference on trained-looking weights at the tiny, cpu and paper widths: the world-model
   loss terms, every gradient, the actor-critic's losses after it, and the acting embedding against the training one.
+* Where it steps aside, its one line says what happened: the layer or the loss term that differs from what the fast
+  path serves, or that the model draws random numbers the check cannot hold equal; the check runs both sides from
+  the same random state and leaves the caller's as it was.
+
+A research edit that makes the default model leave the fast path fails one test,
+:func:`test_the_default_model_takes_the_fast_path`; the tests that need a model the path serves take the
+``fast_path`` fixture (conftest.py) and are skipped then, naming it.
 """
 
 from __future__ import annotations
 
 import json
+import re
 from collections.abc import Callable
 from pathlib import Path
 from types import ModuleType
@@ -151,9 +159,21 @@ EDITS = {
 }
 
 
+def test_the_default_model_takes_the_fast_path(preset_verdicts: dict[str, str]) -> None:
+    """The models the presets build take the CPU fast path. Where this fails, a change to the model (a research
+    edit, say) made it leave the path: legitimate, and the tests that need a model the path serves are skipped."""
+    leaving = [f"\n  {name}: {reason}" for name, reason in preset_verdicts.items() if reason]
+    if leaving:
+        pytest.fail("the default model no longer takes the fast path:" + "".join(leaving), pytrace=False)
+
+
 @pytest.mark.parametrize("name", list(EDITS))
-def test_an_edited_model_trains_as_edited_never_as_before(name: str, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_an_edited_model_trains_as_edited_never_as_before(
+    name: str, monkeypatch: pytest.MonkeyPatch, fast_path: Callable[..., Config]
+) -> None:
     overrides, edit, patches, expected = EDITS[name]
+    if expected == "cpu":
+        fast_path()
     batch = random_batch(2, 6, 3)
     unedited = build(make_config("tiny"))
     before = loss_and_grads(unedited, ReferencePath(unedited), batch)
@@ -169,20 +189,18 @@ def test_an_edited_model_trains_as_edited_never_as_before(name: str, monkeypatch
 
 
 def test_a_fast_path_that_computes_another_model_steps_aside_or_is_refused(
-    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str], fast_path: Callable[..., Config]
 ) -> None:
     """A decoder form that is off by a little (its last layer's bias shifted by 0.01) fails the check."""
+    config = fast_path()
     plain = cpu.decode_phases
 
     def wrong(decoder, feat, levels, offset=0.0):
         return plain(decoder, feat, levels, offset + 0.01)
 
     monkeypatch.setattr(cpu, "decode_phases", wrong)
-    config = make_config("tiny")
     model = build(config)
-    assert "differs from the reference" in backends.check_against_reference(
-        model, lambda m: cpu.CpuPath(m, *cpu.pixel_affine())
-    )
+    assert "differs by" in backends.check_against_reference(model, lambda m: cpu.CpuPath(m, *cpu.pixel_affine()))
     assert backends.select(model, config, CPU, autocast=False).name == "reference"
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("backend: the CPU fast path steps aside") and "reference model" in err[0]
@@ -190,13 +208,196 @@ def test_a_fast_path_that_computes_another_model_steps_aside_or_is_refused(
         backends.select(model, make_config("tiny", ["train.backend=cpu"]), CPU, autocast=False)
 
 
-def test_a_patched_reference_decoder_is_seen_by_the_numbers(monkeypatch: pytest.MonkeyPatch) -> None:
+def test_a_patched_reference_decoder_is_seen_by_the_numbers(
+    monkeypatch: pytest.MonkeyPatch, fast_path: Callable[..., Config]
+) -> None:
     """An edit of the decoder's code that its structure does not show (its output halved) makes the path step
     aside: the fast path does not know it, and the check on a batch does."""
+    config = fast_path()
     plain = ConvDecoder.forward
     monkeypatch.setattr(ConvDecoder, "forward", lambda self, feat: 0.5 * plain(self, feat))
-    config = make_config("tiny")
     assert backends.select(build(config), config, CPU, autocast=False).name == "reference"
+
+
+# -- what a step aside says ---------------------------------------------------------------------------------------
+
+
+def decoder_layer_replaced(index: int, make: Callable[[nn.ConvTranspose2d], nn.Module]) -> Callable[[WorldModel], None]:
+    """An edit that puts ``make(layer)`` in place of the decoder's layer ``net[index]``."""
+
+    def edit(model: WorldModel) -> None:
+        layers = list(model.decoder.net)
+        layers[index] = make(layers[index])
+        model.decoder.net = nn.Sequential(*layers)
+
+    return edit
+
+
+def second_activation_in_the_decoder(model: WorldModel) -> None:
+    layers = list(model.decoder.net)
+    model.decoder.net = nn.Sequential(*layers[:4], nn.Tanh(), *layers[4:])
+
+
+def tanh_after_the_decoder(model: WorldModel) -> None:
+    model.decoder.net = nn.Sequential(*model.decoder.net, nn.Tanh())
+
+
+STRUCTURE_REASONS = {
+    # name: (config overrides, edit of the built model, the reason)
+    "GroupNorm in the decoder": (
+        [],
+        group_norm_in_decoder,
+        "the decoder has a GroupNorm between its transposed convolutions 1 and 2 (the fast path serves an ELU,"
+        " SiLU, ReLU, GELU or Tanh alone there)",
+    ),
+    "act=silu, norm=layer": (
+        ["world_model.act=silu", "world_model.norm=layer"],
+        None,
+        "the decoder has a ChannelNorm after each transposed convolution but the last (world_model.norm=layer;"
+        " the fast path serves an ELU, SiLU, ReLU, GELU or Tanh alone there)",
+    ),
+    "other decoder kernels": (
+        ["world_model.decoder_kernels=2,2,2,2,2,2"],
+        None,
+        "the decoder's kernels are (2, 2, 2, 2, 2, 2), not DreamerV2's 5, 5, 6, 6",
+    ),
+    "a Conv2d for the second transposed convolution": (
+        [],
+        decoder_layer_replaced(2, lambda t: nn.Conv2d(t.in_channels, t.out_channels, 3, padding=1)),
+        "decoder layer 2 (decoder.net[2]) is a Conv2d, not a ConvTranspose2d of stride 2 (no padding, dilation or"
+        " groups)",
+    ),
+    "a stride-1 transposed convolution": (
+        [],
+        decoder_layer_replaced(4, lambda t: nn.ConvTranspose2d(t.in_channels, t.out_channels, 6, padding=2)),
+        "decoder layer 3 (decoder.net[4]) is a ConvTranspose2d of stride 1, padding 2, not a ConvTranspose2d of"
+        " stride 2 (no padding, dilation or groups)",
+    ),
+    "a LeakyReLU for the first activation": (
+        [],
+        decoder_layer_replaced(1, lambda _: nn.LeakyReLU()),
+        "the decoder has a LeakyReLU between its transposed convolutions 1 and 2 (the fast path serves an ELU,"
+        " SiLU, ReLU, GELU or Tanh alone there)",
+    ),
+    "a second activation": (
+        [],
+        second_activation_in_the_decoder,
+        "the decoder has an ELU and a Tanh between its transposed convolutions 2 and 3 (the fast path serves one ELU,"
+        " SiLU, ReLU, GELU or Tanh there)",
+    ),
+    "a Tanh after the last transposed convolution": (
+        [],
+        tanh_after_the_decoder,
+        "the decoder has a Tanh after its last transposed convolution (the fast path serves none there)",
+    ),
+}
+
+
+@pytest.mark.parametrize("name", list(STRUCTURE_REASONS))
+def test_a_step_aside_names_the_decoder_layer_that_differs(
+    name: str, capsys: pytest.CaptureFixture[str], fast_path: Callable[..., Config]
+) -> None:
+    """The one line and the refusal name the layer (or the setting) that differs from what the fast path serves,
+    not the kernels it was written for."""
+    fast_path()
+    overrides, edit, reason = STRUCTURE_REASONS[name]
+    config = make_config("tiny", overrides)
+    model = build(config, edit)
+    assert cpu.unsupported(model) == reason
+    assert backends.select(model, config, CPU, autocast=False).name == "reference"
+    assert capsys.readouterr().err.splitlines() == [
+        f"backend: the CPU fast path steps aside ({reason}); training with the reference model"
+    ]
+    with pytest.raises(ConfigError, match=re.escape(reason)):
+        backends.select(model, make_config("tiny", [*overrides, "train.backend=cpu"]), CPU, autocast=False)
+
+
+def test_an_elementwise_activation_alone_stays_on_the_fast_path(fast_path: Callable[..., Config]) -> None:
+    """``world_model.act=silu`` is an elementwise activation the path serves; the norm is what leaves it."""
+    fast_path()
+    assert cpu.unsupported(build(make_config("tiny", ["world_model.act=silu"]))) == ""
+    assert "ChannelNorm" in cpu.unsupported(build(make_config("tiny", ["world_model.norm=layer"])))
+
+
+def dropout_in_the_heads(model: WorldModel) -> None:
+    """A dropout after the first hidden layer of the reward and discount heads (one before the image term is
+    computed, one after)."""
+    for head in (model.reward_head, model.discount_head):
+        assert head is not None
+        layers = list(head.mlp.net)
+        head.mlp.net = nn.Sequential(*layers[:2], nn.Dropout(0.3), *layers[2:])
+
+
+def test_a_head_with_dropout_passes_the_check_and_the_callers_random_state_is_kept(
+    fast_path: Callable[..., Config],
+) -> None:
+    """Every pass of the check starts from the same global random state, so a dropout draws the same masks on both
+    sides: the fast path, which computes the heads as the reference does, passes and trains; the random state the
+    caller had is the one it has after."""
+    fast_path()
+    config = make_config("tiny", ["world_model.pred_discount=true"])
+    model = build(config, dropout_in_the_heads)
+    batch = random_batch(2, 6, 3)
+    torch.manual_seed(11)
+    unseeded = [float(loss_and_grads(model, ReferencePath(model), batch)["loss"]) for _ in range(2)]
+    assert unseeded[0] != unseeded[1], "the dropout draws nothing: the test would not see the random state"
+    torch.manual_seed(12)
+    before = torch.random.get_rng_state()
+    assert backends.check_against_reference(model, lambda m: cpu.CpuPath(m, *cpu.pixel_affine())) == ""
+    assert torch.equal(torch.random.get_rng_state(), before)
+    path = backends.select(model, config, CPU, autocast=False)
+    assert path.name == "cpu"
+    torch.manual_seed(13)
+    got = loss_and_grads(model, path, batch)
+    torch.manual_seed(13)
+    assert_same(got, loss_and_grads(model, ReferencePath(model), batch))
+
+
+class OwnNoise(nn.Module):
+    """Noise from a generator of the module's own, which no seed of the check reaches."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.generator = torch.Generator().manual_seed(5)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return x + 0.1 * torch.randn(x.shape, generator=self.generator, dtype=x.dtype)
+
+
+def test_a_model_drawing_random_numbers_the_check_cannot_hold_equal_is_named(
+    capsys: pytest.CaptureFixture[str], fast_path: Callable[..., Config]
+) -> None:
+    config = fast_path()
+    model = build(
+        config, lambda m: setattr(m.reward_head.mlp, "net", nn.Sequential(OwnNoise(), *m.reward_head.mlp.net))
+    )
+    assert backends.select(model, config, CPU, autocast=False).name == "reference"
+    assert capsys.readouterr().err.splitlines() == [
+        "backend: the CPU fast path steps aside (the model draws random numbers beyond its latent noise that the"
+        " check cannot hold equal (from a generator other than torch's global one, say)); training with the"
+        " reference model"
+    ]
+
+
+def test_an_edited_image_term_is_named_with_the_gradient_it_changes(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str], fast_path: Callable[..., Config]
+) -> None:
+    """The fast path runs :meth:`WorldModel.loss` with only its image term replaced, so where the reference's image
+    term is edited (its features detached from the encoder and the RSSM), the line says it is that term, and which
+    gradient shows it."""
+    config = fast_path()
+    plain = WorldModel.image_nll
+    monkeypatch.setattr(WorldModel, "image_nll", lambda self, feat, batch: plain(self, feat.detach(), batch))
+    assert backends.select(build(config), config, CPU, autocast=False).name == "reference"
+    (line,) = capsys.readouterr().err.splitlines()
+    prefix = (
+        "backend: the CPU fast path steps aside (the reference's image term (WorldModel.image_nll) is not the one the"
+        " fast path computes: "
+    )
+    assert line.startswith(prefix), line
+    assert re.search(
+        r"^encoder\.[\w.]+'s gradient differs by [\d.e+-]+ \(relative [\d.e+-]+\)\); training", line[len(prefix) :]
+    )
 
 
 def test_where_only_the_reference_runs() -> None:
@@ -222,11 +423,11 @@ def test_where_only_the_reference_runs() -> None:
     ],
 )
 def test_the_cpu_path_equals_the_reference_update(
-    preset: str, overrides: list[str], batch_size: int, length: int
+    preset: str, overrides: list[str], batch_size: int, length: int, fast_path: Callable[..., Config]
 ) -> None:
     """World-model loss terms and every gradient, the actor-critic's losses after it, and the acting embedding
     against the training one, on trained-looking weights."""
-    config = make_config(preset, overrides)
+    fast_path(preset, overrides)
     agents = {}
     for backend in ("reference", "cpu"):
         torch.manual_seed(0)
@@ -253,7 +454,6 @@ def test_the_cpu_path_equals_the_reference_update(
         acting = agent.world_model.encode(batch["image"][:, 0])
         training = agent.model_path.embed(agent.model_path.prepare(dict(batch)))[:, 0]
     torch.testing.assert_close(acting, training)
-    del config
 
 
 def test_backend_and_architecture_keys_are_range_checked() -> None:
@@ -342,10 +542,10 @@ def test_an_explicit_cpu_backend_it_cannot_serve_is_refused_before_anything_is_w
     assert not logdir.exists()
 
 
-def test_a_verdict_is_not_reused_for_a_module_patched_on_its_own() -> None:
+def test_a_verdict_is_not_reused_for_a_module_patched_on_its_own(fast_path: Callable[..., Config]) -> None:
     """The verdicts are cached per structure and code: a model like a checked one but with one module's own
     ``forward`` replaced is checked anew, and the CPU path steps aside for it."""
-    config = make_config("tiny")
+    config = fast_path()
     assert backends.select(build(config), config, CPU, autocast=False).name == "cpu"
     model = build(config)
     decoder = model.decoder
