@@ -47,6 +47,7 @@ def test_a_dataset_shorter_than_a_sequence_is_refused_before_pretraining(tmp_pat
         ("dreamerv2-penalty", "penalty.ensemble=1000000000", "penalty.ensemble"),
         ("lompo", "lompo.ensemble=1000000000", "lompo.ensemble"),
         ("lompo", "lompo.units=10000000", "lompo.units"),
+        ("lompo", "lompo.batch_size=1000000000", "lompo.batch_size"),  # its latent transitions and activations
         ("drq-bc", "drqbc.frame_stack=1000000", "drqbc.frame_stack"),
         ("dreamerv2", "world_model.deter=1000000000", "world_model.deter"),
     ],
@@ -71,6 +72,9 @@ def test_the_memory_estimate_passes_every_preset_and_refuses_past_the_machine():
     for preset in ("paper", "cpu", "tiny"):
         for algo in ALGOS:
             check_memory(algo, make_config(preset), available=32 * 2**30)  # what a paper-size GPU host has
+    # each Fisher batch's gradients are held until their mean is taken
+    ewc = make_config("paper", ["ewc.fisher_batches=10000"])
+    assert estimate("dreamerv2-finetune-ewc", ewc)[0].key == "ewc.fisher_batches"
     config = make_config("tiny", ["train.envs=200"])
     assert estimate("dreamerv2", config)[0].key == "train.envs"
     with pytest.raises(ConfigError, match="train.envs=200 makes a dreamerv2 run allocate at least"):

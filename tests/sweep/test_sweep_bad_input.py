@@ -152,6 +152,8 @@ def test_sigterm_stops_the_sweep_and_its_child_with_exit_code_143(tmp_path, proc
         (["--table", "toy-cpu", "--set", "penalty.model_updates=100000", "--dry-run"], ["penalty.model_updates"]),
         (["--pairs", "toy_reach:toy_reach_shifted", "--preset", "tiny", "--set", "penalty.ensemble=1000000000"],
          ["penalty.ensemble", "GiB"]),
+        (["--pairs", "toy_reach:toy_reach_shifted", "--algos", "lompo", "--preset", "tiny", "--set",
+          "lompo.batch_size=1000000000", "--dry-run"], ["the lompo runs", "lompo.batch_size", "GiB"]),
     ],
 )  # fmt: skip
 def test_the_rules_train_applies_are_checked_for_every_run_before_the_folder_exists(tmp_path, args, needles):
