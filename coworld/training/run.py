@@ -175,10 +175,10 @@ def load_run(logdir: str | Path, fix: str = "") -> tuple[Config, dict[str, Any]]
     try:
         config = from_dict(config_data)
     except ConfigError as err:
-        raise CoworldError(_damaged(logdir / "config.json", f"a config that does not build: {err}", fix)) from None
+        raise CoworldError(damaged(logdir / "config.json", f"a config that does not build: {err}", fix)) from None
     info = run_description(read_json_object(logdir / "run.json", fix))
     if not isinstance(info.get("algo"), str):
-        raise CoworldError(_damaged(logdir / "run.json", "no algo: it does not say what was trained", fix))
+        raise CoworldError(damaged(logdir / "run.json", "no algo: it does not say what was trained", fix))
     return config, info
 
 
@@ -188,15 +188,17 @@ def read_json_object(path: Path, fix: str = "") -> dict[str, Any]:
     try:
         data = json.loads(path.read_bytes().decode("utf-8"))
     except UnicodeDecodeError:
-        raise CoworldError(_damaged(path, "not UTF-8 text", fix)) from None
+        raise CoworldError(damaged(path, "not UTF-8 text", fix)) from None
     except json.JSONDecodeError as err:
-        raise CoworldError(_damaged(path, f"not JSON: {err}", fix)) from None
+        raise CoworldError(damaged(path, f"not JSON: {err}", fix)) from None
     if not isinstance(data, dict):
-        raise CoworldError(_damaged(path, f"JSON {type(data).__name__}, not an object", fix))
+        raise CoworldError(damaged(path, f"JSON {type(data).__name__}, not an object", fix))
     return data
 
 
-def _damaged(path: Path, why: str, fix: str) -> str:
+def damaged(path: Path, why: str, fix: str) -> str:
+    """The line that says ``path`` is damaged, why, and ``fix`` (what to do); without one, that coworld cannot read
+    it."""
     return f"{path} is damaged ({why})" + (f"; {fix}" if fix else "; it is not a run folder coworld can read")
 
 
