@@ -16,7 +16,7 @@ def choice_lines(results: list[RunResult], problems: list[str]) -> list[str]:
     lines = []
     for r in results:
         try:
-            choice = read_choice(Path(r.run_dir))
+            choice = read_choice(Path(r.run_dir), fix="the report leaves this run's source choice out")
         except CoworldError as err:
             problems.append(str(err))
             continue

@@ -14,6 +14,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+import h5py
 import numpy as np
 import torch
 
@@ -92,8 +93,9 @@ def check_run_dir(logdir: str | Path, config: Config, info: Mapping[str, Any], s
         absent or new (no training artefacts, :data:`RUN_ARTEFACTS`).
 
     Raises:
-        CoworldError: the folder holds another run (other settings or tasks), an unreadable description, or
-        training artefacts that no ``config.json`` describes (a checkpoint copied in, say).
+        CoworldError: the folder holds another run (other settings or tasks), an unreadable description, training
+        artefacts that no ``config.json`` describes (a checkpoint copied in, say), or source experience of another
+        task than the run's source (:func:`check_source_replay`).
     """
     logdir = Path(logdir)
     config_path = logdir / "config.json"
@@ -121,7 +123,36 @@ def check_run_dir(logdir: str | Path, config: Config, info: Mapping[str, Any], s
                 f"{logdir} holds a run with {key}={saved_info[key]!r}, not {value!r};"
                 f" rerun with the same settings to resume, or {start_over}"
             )
+    check_source_replay(logdir, info, start_over)
     return True
+
+
+def check_source_replay(logdir: Path, info: Mapping[str, Any], start_over: str) -> None:
+    """The source experience a two-phase run records as its source agent learns (``source_replay.h5``, resumed
+    with the run) is of the run's source task: the one it names, or the one it chose among several (none before
+    the choice). One line otherwise, ending with ``start_over``; a file that cannot be read is left to the writer
+    that resumes it."""
+    from coworld.training.source_choice import CHOICE_FILE, trained_source
+
+    path = logdir / "source_replay.h5"
+    if not isinstance(info.get("source"), str) or not path.is_file():
+        return
+    try:
+        with h5py.File(path, "r") as f:
+            task = f.attrs.get("task")
+    except OSError:
+        return
+    task = task.decode() if isinstance(task, bytes) else task
+    source = trained_source(logdir, info)
+    if task == source:
+        return
+    if source is None:
+        whose = f"the run has not chosen among its sources {info['source']} yet ({CHOICE_FILE})"
+    else:
+        whose = f"the run's source is {source}" + (f" ({CHOICE_FILE})" if "," in info["source"] else "")
+    raise CoworldError(
+        f"{path} holds {task} experience but {whose}, so one of them comes from another run or was edited; {start_over}"
+    )
 
 
 def prepare_run_dir(logdir: str | Path, config: Config, info: Mapping[str, Any], start_over: str = START_OVER) -> bool:
@@ -172,6 +203,8 @@ def load_run(logdir: str | Path, fix: str = "") -> tuple[Config, dict[str, Any]]
     if not (logdir / "config.json").is_file() or not (logdir / "run.json").is_file():
         raise CoworldError(f"{logdir} is not a coworld run folder (no config.json / run.json)")
     config_data = read_json_object(logdir / "config.json", fix)
+    if not config_data:  # every key would take its default: the paper preset, not what was run
+        raise CoworldError(damaged(logdir / "config.json", "an empty object: it holds none of the run's settings", fix))
     try:
         config = from_dict(config_data)
     except ConfigError as err:

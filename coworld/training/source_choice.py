@@ -111,13 +111,14 @@ def _distances(data: Any, candidates: Sequence[str]) -> dict[str, float]:
     return {name: float(value) for name, value in data.items()}
 
 
-def trained_source(run_dir: str | Path, info: Mapping[str, Any]) -> str | None:
+def trained_source(run_dir: str | Path, info: Mapping[str, Any], fix: str | None = None) -> str | None:
     """The source task a run's source agent learned in: the one chosen where it chose among several (None before
-    the choice), else the one it names."""
+    the choice), else the one it names. ``fix``: what the calling command offers where the choice is damaged
+    (:func:`read_choice`)."""
     source = info.get("source")
     if not isinstance(source, str):
         return None
     if "," not in source:
         return source
-    choice = read_choice(run_dir)
+    choice = read_choice(run_dir, fix=fix)
     return choice.chosen if choice is not None else None

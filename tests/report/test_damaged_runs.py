@@ -51,6 +51,30 @@ def test_a_damaged_file_is_skipped_with_one_line_and_the_rest_is_reported(tmp_pa
     assert f"- {bad / name}:" in (tmp_path / "report.md").read_text()
 
 
+CHOICES = {
+    "not JSON": b"{",
+    "no candidates": json.dumps(
+        {"candidates": [], "distances": {}, "chosen": "toy_reach", "align_on": "latent", "batches": 8}
+    ).encode(),  # fmt: skip
+}
+
+
+@pytest.mark.parametrize("damage", sorted(CHOICES))
+def test_a_damaged_source_choice_is_skipped_with_a_line_that_names_no_option_of_another_command(tmp_path, processes,
+                                                                                                damage):  # fmt: skip
+    pytest.importorskip("matplotlib")
+    pytest.importorskip("scipy")
+    run = run_folder(tmp_path, "run", returns=[1.0])
+    (run / "run.json").write_text(json.dumps({"algo": "coworld", "source": "toy_reach,toy_reach_centre",
+                                              "target": "toy_reach_shifted"}))  # fmt: skip
+    (run / "source_choice.json").write_bytes(CHOICES[damage])
+    done = processes.run_cli("report", str(tmp_path), timeout=120)
+    assert done.returncode == 0, done.stderr
+    line = processes.last_word(done.stderr, "warning: ")
+    assert line.startswith(f"warning: skipped {run / 'source_choice.json'} is damaged"), line
+    assert "--" not in line and "source choice out" in line  # report has no --force, no --logdir
+
+
 def test_an_unreadable_eval_json_is_named_not_called_never_evaluated(tmp_path, processes):
     pytest.importorskip("matplotlib")
     pytest.importorskip("scipy")
