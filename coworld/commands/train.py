@@ -9,8 +9,8 @@ import click
 
 from coworld import interrupt
 from coworld.commands.options import SEED, input_path, output_folder, threads_option
-from coworld.errors import StorageError
-from coworld.training.train import ALGOS, NEEDS_SOURCE
+from coworld.errors import CoworldError, StorageError
+from coworld.training.train import ALGOS, NEEDS_SOURCE, parse_sources
 
 RESUME = "rerun the same command to resume"
 
@@ -21,7 +21,8 @@ RESUME = "rerun the same command to resume"
     "--source",
     default=None,
     help=f"Online source task ({', '.join(NEEDS_SOURCE)} only; the others ignore it), e.g. walker_walk; for coworld"
-    " also several, A,B,...: it pretrains each and keeps the one whose latents lie closest to the target's.",
+    " also several, A,B,... or A+B+... (as sweep pairs and run folder names write them): it pretrains each and keeps"
+    " the one whose latents lie closest to the target's.",
 )
 @click.option(
     "--dataset",
@@ -73,6 +74,8 @@ def train(target, source, dataset, algo, preset, logdir, seed, device, overrides
     if source is not None and algo not in NEEDS_SOURCE:
         click.echo(f"note: --source is not used by {algo}: it learns from the target dataset alone", err=True)
         source = None
+    if source is not None:
+        _check_source_is_not_the_target(parse_sources(source), target)
     job = check_job(
         algo=algo,
         source=source,
@@ -102,6 +105,19 @@ def train(target, source, dataset, algo, preset, logdir, seed, device, overrides
         raise StorageError(f"{err}; {fix}, then {RESUME}", err.reason) from None
     last = summary.get("last_eval_return")
     click.echo(f"done: {job.logdir}" + (f" (last evaluation return {last:.1f})" if last is not None else ""))
+
+
+def _check_source_is_not_the_target(sources: tuple[str, ...], target: str) -> None:
+    """A source domain is another domain than the target's: learning online in the target itself would not be
+    offline RL from its dataset (one line otherwise)."""
+    if target in sources:
+        from coworld import envs
+
+        paired = envs.paired_source(target) or "a task of the target's body (see `coworld tasks`)"
+        raise CoworldError(
+            f"source {target} is the target itself, but a source is another domain, learned online beside the"
+            f" target's dataset; pass another --source, e.g. --source {paired}"
+        )
 
 
 def _kept(logdir: Path) -> str:

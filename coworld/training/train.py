@@ -145,6 +145,12 @@ def check_job(
     if algo not in ALGOS:
         raise CoworldError(f"unknown algorithm {algo!r}; choose one of: {', '.join(ALGOS)}")
     target_spec = envs.task_spec(target)
+    extra = list(overrides)
+    if seed is not None:
+        extra.append(f"seed={seed}")
+    if device is not None:
+        extra.append(f"device={device}")
+    config = make_config(preset, extra)
     warnings: list[str] = []
     if algo in NEEDS_SOURCE:
         if source is None:
@@ -158,12 +164,6 @@ def check_job(
         for name in sources:
             warnings += check_source(algo, name, target)
         source = ",".join(sources)
-    extra = list(overrides)
-    if seed is not None:
-        extra.append(f"seed={seed}")
-    if device is not None:
-        extra.append(f"device={device}")
-    config = make_config(preset, extra)
     check_config(algo, config, target_spec.action_size)
     path = Path(dataset) if dataset is not None else default_dataset_path(target, "medium-replay")
     if not check_dataset(path, target, target_spec.action_size, needed_steps(algo, config)):
