@@ -168,6 +168,27 @@ def test_a_rule_train_applies_refuses_a_real_sweep_process_before_collecting(tmp
     assert not (tmp_path / "s").exists()
 
 
+@pytest.mark.parametrize(
+    ("args", "needles"),
+    [
+        (["--pairs", "toy_reach:toy_reach_shifted,"], ["--pairs", "empty pair", "SOURCE:TARGET"]),
+        (["--pairs", "toy_reach_shifted:toy_reach_shifted"], ["pair toy_reach_shifted:toy_reach_shifted", "target"]),
+        (["--pairs", "toy_reach+toy_reach_shifted:toy_reach_shifted"], ["source toy_reach_shifted is the target"]),
+    ],
+)
+def test_pairs_train_would_refuse_are_refused(tmp_path, args, needles):
+    refused(["sweep", *args, "--preset", "tiny", "--dir", str(tmp_path / "s"), "--dry-run"], *needles)
+    assert not (tmp_path / "s").exists()
+
+
+def test_a_grid_file_and_a_table_are_not_combined(tmp_path):
+    grid = tmp_path / "grid.toml"
+    grid.write_text(TOY)
+    refused(["sweep", "--grid", str(grid), "--table", "toy", "--dir", str(tmp_path / "s"), "--dry-run"], "--grid",
+            "--table")  # fmt: skip
+    assert not (tmp_path / "s").exists()
+
+
 def test_an_unknown_table_exits_2_naming_the_tables_and_writes_nothing(tmp_path):
     result = CliRunner().invoke(main, ["sweep", "--table", "nope", "--dir", str(tmp_path / "s")])
     assert result.exit_code == 2 and "Traceback" not in result.output
