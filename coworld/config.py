@@ -807,8 +807,8 @@ def _replace(node: Any, path: list[str], value: Any, dotted: str) -> Any:
 def _cast(value: Any, hint: Any, dotted: str) -> Any:
     if isinstance(hint, types.UnionType):
         hint = next(arg for arg in typing.get_args(hint) if arg is not type(None))
-    if typing.get_origin(hint) is tuple:  # tuple[int, ...]: "4,4,4" or a list saved as JSON
-        items = value.split(",") if isinstance(value, str) else value
+    if typing.get_origin(hint) is tuple:  # tuple[int, ...]: "4,4,4", "[4, 4, 4]" (as `coworld config` prints it)
+        items = _list_items(value) if isinstance(value, str) else value  # or a list saved as JSON
         try:
             return tuple(_cast(item, int, dotted) for item in items)
         except (ConfigError, TypeError):
@@ -835,6 +835,14 @@ def _cast(value: Any, hint: Any, dotted: str) -> Any:
         kind = {int: "a whole number", float: "a number", bool: "true or false"}.get(hint, hint.__name__)
         raise ConfigError(f"config key {dotted!r} takes {kind}, got {value!r}") from None
     raise ConfigError(f"config key {dotted!r} has unsupported type {hint}")
+
+
+def _list_items(text: str) -> list[str]:
+    """The items of ``"4,4,4"`` or of a JSON-style list ``"[4, 4, 4]"``."""
+    text = text.strip()
+    if text.startswith("[") and text.endswith("]"):
+        text = text[1:-1]
+    return text.split(",")
 
 
 INT_LIMIT = 2**63 - 1

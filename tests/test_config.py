@@ -46,6 +46,14 @@ def test_bad_overrides_raise_one_line(item, match):
     assert "\n" not in str(info.value)
 
 
+def test_a_list_of_kernels_is_taken_as_coworld_config_prints_it_too():
+    plain = make_config("tiny", ["world_model.encoder_kernels=3,3,3,3,3"])
+    for written in ("[3,3,3,3,3]", "[3, 3, 3, 3, 3]", " [ 3, 3, 3, 3, 3 ] "):
+        assert make_config("tiny", [f"world_model.encoder_kernels={written}"]) == plain
+    with pytest.raises(ConfigError, match="takes whole numbers separated by commas"):
+        make_config("tiny", ["world_model.encoder_kernels=[3,3"])
+
+
 def test_whole_numbers_written_as_floats_are_exact():
     config = make_config("tiny", ["train.steps=1e18", "train.batch_size=16.0"])
     assert config.train.steps == 10**18 and config.train.batch_size == 16  # not int(float("1e18")) rounding
