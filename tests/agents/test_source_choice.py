@@ -23,10 +23,12 @@ from coworld.agents.dreamerv2 import DreamerV2
 from coworld.cli import main
 from coworld.config import make_config
 from coworld.data import open_dataset
+from coworld.errors import CoworldError
 from coworld.losses.coworld import closest_source, domain_distance
 from coworld.training.run import clear_run_dir, prepare_run_dir
-from coworld.training.source_choice import CHOICE_FILE, candidate_dir, read_choice
+from coworld.training.source_choice import CHOICE_FILE, candidate_dir, read_choice, trained_source
 from coworld.training.train import check_job, run_job
+from coworld.viz.latents import NAME_THE_SOURCE
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -212,6 +214,15 @@ def test_damaged_distances_are_refused_before_any_candidate_is_pretrained(
     assert lines[0].startswith(f"error: {run / 'selection' / 'distances.json'} is damaged ({why}")
     assert "delete it" in lines[0] and "--force" in lines[0]
     assert sorted(p.relative_to(run) for p in run.rglob("*")) == before  # nothing warmed up or pretrained
+
+
+def test_a_damaged_choice_ends_with_what_the_calling_command_offers(tmp_path: Path) -> None:
+    (tmp_path / CHOICE_FILE).write_text('{"candidates": []}')
+    info = {"algo": "coworld", "source": CANDIDATES, "target": "toy_reach_shifted"}
+    with pytest.raises(CoworldError, match=r"is damaged .*; pass a new --logdir, or --force to start this one over$"):
+        read_choice(tmp_path)  # train's, by default: it is the command that writes the choice
+    with pytest.raises(CoworldError, match=r"is damaged .*; name the run's source with --source TASK$"):
+        trained_source(tmp_path, info, NAME_THE_SOURCE)  # viz latents'
 
 
 def test_a_list_of_sources_for_an_algorithm_without_a_source_is_one_note(tmp_path: Path, toy_dataset_writer) -> None:
