@@ -70,7 +70,7 @@ def load_run_checkpoint(
     try:
         state = load_checkpoint(ckpt, keys=keys, **load)
     except CheckpointError:
-        check_matches(load_checkpoint(ckpt, mmap=True), ckpt, config, info)  # an intact checkpoint of another run
+        check_matches(load_checkpoint(ckpt, mmap=True), ckpt, config, info)  # another run's is called that
         raise
     check_matches(state, ckpt, config, info)
     return state
