@@ -68,13 +68,26 @@ def _dreamer(config: Config, algo: str) -> list[Term]:
         section = "penalty" if algo == "dreamerv2-penalty" else "lompo"
         terms.append(Term(TRAINED * getattr(config, section).ensemble * per_head, f"{section}.ensemble"))
     if algo == "lompo":
-        lompo = config.lompo
-        layers = lompo.actor_layers + 2 * lompo.critic_layers
-        terms.append(Term(TRAINED * 3 * (feat + layers * lompo.units) * lompo.units, "lompo.units"))
-    if algo == "dreamerv2-finetune-ewc":  # the source weights and their Fisher information, beside the networks
+        terms += _lompo(config, feat)
+    if algo == "dreamerv2-finetune-ewc":  # the source weights and their Fisher information, beside the networks,
+        # and each Fisher batch's gradients, held until their mean is taken
         world_model = 3 * wm.deter * (wm.hidden + wm.deter) + 16 * 42 * wm.cnn_depth**2
         terms.append(Term(FLOAT * 2 * world_model, "world_model.deter"))
+        terms.append(Term(FLOAT * config.ewc.fisher_batches * world_model, "ewc.fisher_batches"))
     return terms
+
+
+def _lompo(config: Config, feat: int) -> list[Term]:
+    """LOMPO's latent actor-critic: its weights, and each update's ``lompo.batch_size`` real and as many imagined
+    latent transitions (features and next features, kept apart and concatenated) with the activations the actor and
+    the twin Q-functions keep of them for the backward pass."""
+    lompo = config.lompo
+    layers = lompo.actor_layers + 2 * lompo.critic_layers
+    activations = lompo.actor_layers + 4 * lompo.critic_layers  # Q-functions on the data and on the actor's actions
+    return [
+        Term(TRAINED * 3 * (feat + layers * lompo.units) * lompo.units, "lompo.units"),
+        Term(FLOAT * 2 * lompo.batch_size * (4 * feat + activations * lompo.units), "lompo.batch_size"),
+    ]
 
 
 def _model_free(config: Config, algo: str) -> list[Term]:

@@ -96,6 +96,12 @@ NON_NEGATIVE = Range(0)
 AT_LEAST_1 = Range(1)
 UNIT = Range(0, 1)
 """Shorthands for the ranges most fields use."""
+PENALTY_WEIGHT = Range(0, 1e12)
+"""A penalty's weight: the penalised losses are float32, where 1e300 is already infinite and trains to NaN; 1e12
+leaves every term in range while reaching far past any weight that keeps the loss's own part visible."""
+MLP_LAYERS = Range(0, 100)
+"""Hidden layers of a plain MLP (no normalisation, no residual connections): one of 100,000 layers builds for minutes,
+and none this deep learns."""
 
 
 @dataclass(frozen=True)
@@ -474,7 +480,7 @@ class PenaltyConfig:
 
     ensemble: Annotated[int, Range(2)] = 7
     """Dynamics heads ``deter -> prior logits`` whose disagreement is the penalty (``rssm.ensemble: 7``)."""
-    weight: Annotated[float, NON_NEGATIVE] = 10.0
+    weight: Annotated[float, PENALTY_WEIGHT] = 10.0
     """lambda: imagined reward ``r - lambda * disagreement`` (README command: ``--offline_lmbd 10``)."""
     model_updates: Annotated[int, NON_NEGATIVE] = 25_000
     """Updates at the start that train the world model (and heads) alone; after them the world model is frozen and
@@ -493,20 +499,21 @@ class LompoConfig:
 
     ensemble: Annotated[int, Range(2)] = 7
     """Latent dynamics heads ``deter -> z`` (``num_models: 7``)."""
-    weight: Annotated[float, NON_NEGATIVE] = 5.0
+    weight: Annotated[float, PENALTY_WEIGHT] = 5.0
     """lambda: imagined reward ``r - lambda * std_k log p_k(z')`` (``lmbd: 5.0``, ``penalty_type: log_prob``)."""
     model_updates: Annotated[int, NON_NEGATIVE] = 25_000
     """Updates at the start that train the world model (and heads) alone; after them the world model is frozen and
     only the actor-critic learns (``model_train_steps: 25000``)."""
-    horizon: Annotated[int, AT_LEAST_1] = 5
-    """Steps of each latent rollout (``horizon: 5``)."""
+    horizon: Annotated[int, Range(1, 1000)] = 5
+    """Steps of each latent rollout (``horizon: 5``); at most 1,000: the steps are made one after another, and a
+    longer rollout only compounds the model's error."""
     batch_size: Annotated[int, AT_LEAST_1] = 256
     """Real latent transitions per update, and as many imagined ones (``agent_batch_size: 256`` of each)."""
     units: Annotated[int, AT_LEAST_1] = 256
     """Units per hidden layer of the actor and the Q-functions (``num_units: 256``)."""
-    actor_layers: Annotated[int, NON_NEGATIVE] = 4
+    actor_layers: Annotated[int, MLP_LAYERS] = 4
     """Hidden layers of the deterministic actor (``ActorNetwork(..., 4, num_units)``)."""
-    critic_layers: Annotated[int, NON_NEGATIVE] = 3
+    critic_layers: Annotated[int, MLP_LAYERS] = 3
     """Hidden layers of each of the two Q-functions (``DenseNetwork(1, 3, num_units)``)."""
     actor_lr: Annotated[float, POSITIVE] = 3e-4
     """Actor learning rate (``actor_lr: 3e-4``)."""
@@ -532,11 +539,12 @@ class EwcConfig:
     The later CoWorld paper names the baseline (DV2 Finetune-EWC) without its settings; the values here are this
     project's choice (docs/algorithms.md)."""
 
-    weight: Annotated[float, NON_NEGATIVE] = 1.0
+    weight: Annotated[float, PENALTY_WEIGHT] = 1.0
     """lambda of EWC. ``F`` estimates the Fisher of one step's loss, so 1 weighs keeping the source's fit as much as
     one more target step's loss (Kirkpatrick et al.'s scale)."""
-    fisher_batches: Annotated[int, AT_LEAST_1] = 50
-    """Source replay batches (``train.batch_size`` x ``train.seq_len``) averaged into the Fisher estimate."""
+    fisher_batches: Annotated[int, Range(1, 10_000)] = 50
+    """Source replay batches (``train.batch_size`` x ``train.seq_len``) averaged into the Fisher estimate; at most
+    10,000, as each batch's gradients are held until their mean is taken."""
 
 
 @dataclass(frozen=True)
@@ -889,8 +897,8 @@ def _replace(node: Any, path: list[str], value: Any, dotted: str) -> Any:
 def _cast(value: Any, hint: Any, dotted: str) -> Any:
     if isinstance(hint, types.UnionType):
         hint = next(arg for arg in typing.get_args(hint) if arg is not type(None))
-    if typing.get_origin(hint) is tuple:  # tuple[int, ...]: "4,4,4" or a list saved as JSON
-        items = value.split(",") if isinstance(value, str) else value
+    if typing.get_origin(hint) is tuple:  # tuple[int, ...]: "4,4,4", "[4, 4, 4]" (as `coworld config` prints it)
+        items = _list_items(value) if isinstance(value, str) else value  # or a list saved as JSON
         try:
             return tuple(_cast(item, int, dotted) for item in items)
         except (ConfigError, TypeError):
@@ -917,6 +925,14 @@ def _cast(value: Any, hint: Any, dotted: str) -> Any:
         kind = {int: "a whole number", float: "a number", bool: "true or false"}.get(hint, hint.__name__)
         raise ConfigError(f"config key {dotted!r} takes {kind}, got {value!r}") from None
     raise ConfigError(f"config key {dotted!r} has unsupported type {hint}")
+
+
+def _list_items(text: str) -> list[str]:
+    """The items of ``"4,4,4"`` or of a JSON-style list ``"[4, 4, 4]"``."""
+    text = text.strip()
+    if text.startswith("[") and text.endswith("]"):
+        text = text[1:-1]
+    return text.split(",")
 
 
 INT_LIMIT = 2**63 - 1

@@ -46,3 +46,7 @@ class StorageError(CoworldError):
         import os
 
         return self.reason in {os.strerror(e) for e in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)}
+
+
+class TrainingDiverged(CoworldError):
+    """A loss stopped being a number: the run stops rather than train on (its last checkpoint stays as it was)."""

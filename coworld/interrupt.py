@@ -12,7 +12,9 @@ delivered again to the main thread and raises there, interrupting the wait; rais
 weakref callback, of which torch.compile runs many) it is delivered again shortly. Stopping anywhere is safe for the
 files: datasets commit whole episodes and checkpoints are renamed into place, as they must be for ``kill -9``. A second
 signal stops at once; a third is not caught at all. Once a stop is asked, an error on the way out (worker processes
-killed by the same SIGTERM, sent to the whole process group) is part of the stop, and warnings are no longer shown.
+killed by the same SIGTERM, sent to the whole process group) is part of the stop, and warnings are no longer shown:
+not by a filter, which a ``warnings.catch_warnings`` block (torch.compile enters many) puts back as it found it, but
+by the hook every warning is shown through.
 The CLI prints one line (what was kept, how to resume) and exits with 128 + the signal number.
 
 Worker processes of vector environments ignore SIGINT (:func:`ignored_by_new_processes` around their start): a Ctrl-C
@@ -75,6 +77,7 @@ class _State:
         self.count = 0  # signals received from outside
         self.timer: threading.Timer | None = None
         self.previous_unraisable: Callable[[Any], Any] = sys.__unraisablehook__
+        self.previous_show: Callable[[Any], Any] = warnings._showwarnmsg
 
 
 _state = _State()
@@ -107,7 +110,6 @@ def _handle(signum: int, frame: Any) -> None:
         signal.signal(signum, signal.SIG_DFL)
     first = _state.requested is None
     _state.requested = _state.requested or signum
-    warnings.simplefilter("ignore")  # what cleanup code warns about while stopping is noise
     if _state.safe_points > 0 and first:
         _state.timer = threading.Timer(GRACE_SECONDS, _escalate, args=(signum,))
         _state.timer.daemon = True
@@ -129,6 +131,14 @@ def _swallowed(args: Any) -> None:
     _state.previous_unraisable(args)
 
 
+def _show_unless_stopping(message: Any) -> None:
+    """``warnings._showwarnmsg`` while signals are handled: once a stop is asked, what is warned about on the way out
+    (cleanup code, PyTorch's anomaly mode reporting the stop inside a backward pass as an error) is noise; before,
+    each warning is shown as it was."""
+    if _state.requested is None:
+        _state.previous_show(message)
+
+
 def _escalate(signum: int) -> None:
     """Runs in the timer thread: no check came in time, so interrupt the main thread where it is."""
     if _state.raised or not _state.installed:
@@ -148,23 +158,24 @@ def handling_signals() -> Iterator[None]:
         yield
         return
     previous = {sig: signal.getsignal(sig) for sig in SIGNALS}
-    filters = warnings.filters[:]
     _state = _State()
     for sig in SIGNALS:
         if previous[sig] is not signal.SIG_IGN:
             signal.signal(sig, _handle)
     _state.previous_unraisable = sys.unraisablehook
     sys.unraisablehook = _swallowed
+    _state.previous_show = warnings._showwarnmsg  # the hook catch_warnings leaves alone, unlike the filters
+    warnings._showwarnmsg = _show_unless_stopping
     _state.installed = True
     try:
         yield
     finally:
         sys.unraisablehook = _state.previous_unraisable
+        warnings._showwarnmsg = _state.previous_show
         if _state.timer is not None:
             _state.timer.cancel()
         for sig, handler in previous.items():
             signal.signal(sig, handler if handler is not None else signal.SIG_DFL)
-        warnings.filters[:] = filters
         _state = _State()
 
 

@@ -46,6 +46,14 @@ def test_bad_overrides_raise_one_line(item, match):
     assert "\n" not in str(info.value)
 
 
+def test_a_list_of_kernels_is_taken_as_coworld_config_prints_it_too():
+    plain = make_config("tiny", ["world_model.encoder_kernels=3,3,3,3,3"])
+    for written in ("[3,3,3,3,3]", "[3, 3, 3, 3, 3]", " [ 3, 3, 3, 3, 3 ] "):
+        assert make_config("tiny", [f"world_model.encoder_kernels={written}"]) == plain
+    with pytest.raises(ConfigError, match="takes whole numbers separated by commas"):
+        make_config("tiny", ["world_model.encoder_kernels=[3,3"])
+
+
 def test_whole_numbers_written_as_floats_are_exact():
     config = make_config("tiny", ["train.steps=1e18", "train.batch_size=16.0"])
     assert config.train.steps == 10**18 and config.train.batch_size == 16  # not int(float("1e18")) rounding
@@ -96,6 +104,15 @@ def test_every_field_is_documented():
         ("device=tpu", "it must be one of auto, cpu, cuda or cuda:N"),
         ("actor_critic.horizon=1", "it must be >= 2"),
         ("curl.crop=80", "curl.crop=80 is larger than the padded frame"),
+        # sizes and weights a run would only trip over late: hours of Fisher batches, a rollout of a billion steps,
+        # an MLP of 100,000 layers, a weight that is infinite in float32 (it trains to NaN)
+        ("ewc.fisher_batches=1e12", "ewc.fisher_batches=1000000000000 is out of range: it must be in [1, 10000]"),
+        ("lompo.horizon=1e9", "lompo.horizon=1000000000 is out of range: it must be in [1, 1000]"),
+        ("lompo.actor_layers=1e5", "lompo.actor_layers=100000 is out of range: it must be in [0, 100]"),
+        ("lompo.critic_layers=1e5", "lompo.critic_layers=100000 is out of range: it must be in [0, 100]"),
+        ("ewc.weight=1e300", "ewc.weight=1e+300 is out of range: it must be in [0, 1000000000000]"),
+        ("lompo.weight=1e300", "lompo.weight=1e+300 is out of range: it must be in [0, 1000000000000]"),
+        ("penalty.weight=1e300", "penalty.weight=1e+300 is out of range: it must be in [0, 1000000000000]"),
     ],
 )
 def test_values_out_of_range_are_refused_in_one_line(item, message):

@@ -91,6 +91,29 @@ def test_a_stop_that_meets_no_check_interrupts_the_main_thread_after_the_grace_p
     assert interrupt.GRACE_SECONDS <= waited < interrupt.GRACE_SECONDS + 2
 
 
+def test_no_warning_is_shown_once_a_stop_is_asked_even_after_a_block_restored_the_filters() -> None:
+    """torch.compile traces the backward pass in anomaly mode and inside many ``warnings.catch_warnings`` blocks, which
+    put the filters back as they found them: a stop asked inside one, delivered in backward later, made PyTorch print
+    the forward call's stack ("Error detected in AddmmBackward0") before the stop's line."""
+    import warnings
+
+    import torch
+
+    with warnings.catch_warnings(record=True) as shown:
+        warnings.simplefilter("always")
+        with interrupt.handling_signals(), interrupt.safe_points():
+            with warnings.catch_warnings():  # the stop is asked inside a block that restores the filters at its end
+                _send(signal.SIGINT)
+            x = torch.ones(2, 2, requires_grad=True)
+            with pytest.raises(interrupt.Interrupted), torch.autograd.detect_anomaly(check_nan=False):
+                y = torch.addmm(x, x, x)
+                y.register_hook(lambda grad: interrupt.check())  # the stop, delivered inside backward
+                y.sum().backward()
+            warnings.warn("cleanup noise", stacklevel=1)
+        warnings.warn("after the command", stacklevel=1)  # warnings are shown again once signals are not handled
+    assert [str(w.message) for w in shown] == ["after the command"]
+
+
 def test_a_stop_raised_inside_a_weakref_callback_is_delivered_again() -> None:
     """torch.compile runs many weakref callbacks; a stop raised inside one is ignored by Python ("Exception ignored"),
     so it must come again rather than wait for the next check (which compilation may not reach for a minute)."""

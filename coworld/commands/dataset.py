@@ -199,7 +199,7 @@ def export(
     --to minari        a Minari dataset in MINARI_DATASETS_PATH (default ~/.minari/datasets)
     --to npz-episodes  one .npz per episode (V-D4RL's 64px layout) in the new folder --out
     """
-    from coworld.data.export import export_minari, export_npz_episodes
+    from coworld.data.export import export_minari, export_npz_episodes, minari_path
     from coworld.errors import ConfigError
 
     progress = sys.stderr.isatty()
@@ -222,4 +222,5 @@ def export(
         code_permalink=code_permalink,
         **checks,
     )
-    click.echo(f"wrote Minari dataset {dataset_id}: open it with minari.load_dataset({dataset_id!r})")
+    where = minari_path(dataset_id)
+    click.echo(f"wrote Minari dataset {dataset_id} in {where}: open it with minari.load_dataset({dataset_id!r})")

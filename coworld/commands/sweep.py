@@ -8,6 +8,7 @@ import click
 
 from coworld import interrupt
 from coworld.commands.options import MAX_THREADS, Number, capped_jobs, count_type, input_path, output_folder
+from coworld.errors import CoworldError
 from coworld.sweep.grid import MAX_SEEDS, TABLES
 from coworld.training.train import ALGOS
 
@@ -87,6 +88,11 @@ def sweep(
     from coworld.sweep import grid as grids
     from coworld.sweep.runner import Execution, check_execution, preview, run_sweep
 
+    if grid_file is not None and table is not None:
+        raise CoworldError(
+            f"--grid and --table are not combined: name the table in {grid_file} (table = {table!r} there) and pass"
+            " --grid alone, or pass --table alone"
+        )
     options = grids.read_grid_file(grid_file) if grid_file else {}
     if table is not None:
         options["table"] = table

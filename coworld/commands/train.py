@@ -21,7 +21,8 @@ RESUME = "rerun the same command to resume"
     "--source",
     default=None,
     help=f"Online source task ({', '.join(NEEDS_SOURCE)} only; the others ignore it), e.g. walker_walk; for coworld"
-    " also several, A,B,...: it pretrains each and keeps the one whose latents lie closest to the target's.",
+    " also several, A,B,... or A+B+... (as sweep pairs and run folder names write them): it pretrains each and keeps"
+    " the one whose latents lie closest to the target's.",
 )
 @click.option(
     "--dataset",

@@ -110,7 +110,7 @@ def latents(ckpt, out, frames, length, dataset, source_dataset, source, perplexi
     """
     import json
 
-    from coworld.viz.latents import latent_figure, latents_of_run
+    from coworld.viz.latents import NAME_THE_SOURCE, latent_figure, latents_of_run
     from coworld.viz.media import output_kind, require_extra, write_figure, write_text
     from coworld.viz.runs import load_run_models
 
@@ -128,7 +128,7 @@ def latents(ckpt, out, frames, length, dataset, source_dataset, source, perplexi
         seed=seed,
         perplexity=perplexity,
     )
-    source_task = source or trained_source(run.run_dir, run.info)
+    source_task = source or trained_source(run.run_dir, run.info, NAME_THE_SOURCE)
     title = f"{run.algo}: {source_task or 'source'} -> {run.info['target']} ({run.run_dir.name})"
     write_figure(out, latent_figure(report, title))
     click.echo(f"{run.run_dir} ({run.algo} run): {where}; {frames} frames each")

@@ -134,7 +134,6 @@ def export_minari(
     from minari.dataset.minari_dataset import parse_dataset_id
     from minari.dataset.minari_storage import MinariStorage
     from minari.namespace import create_namespace, list_local_namespaces, validate_namespace
-    from minari.storage.datasets_root_dir import get_dataset_path
 
     if name is not None and not name.strip():
         raise CoworldError("--name is empty; give a Minari dataset id such as coworld/walker_walk/medium-replay-v0")
@@ -150,7 +149,7 @@ def export_minari(
                 f"bad Minari dataset name {name!r}: write it as namespace/name-v<version>, "
                 f"e.g. {default_minari_name(data.task, data.quality)}"
             ) from None
-        final = Path(get_dataset_path(name))
+        final = minari_path(name)
         _check_destination(final, force, "Minari dataset", f", or remove it first with `minari delete {name}`")
         if namespace is not None and namespace not in list_local_namespaces():
             create_namespace(namespace)
@@ -191,6 +190,13 @@ def export_minari(
             shutil.rmtree(tmp, ignore_errors=True)
             raise
     return name
+
+
+def minari_path(name: str) -> Path:
+    """The folder of the Minari dataset ``name`` (in ``MINARI_DATASETS_PATH``, default ``~/.minari/datasets``)."""
+    from minari.storage.datasets_root_dir import get_dataset_path
+
+    return Path(get_dataset_path(name))
 
 
 def _minari_metadata(

@@ -8,15 +8,18 @@
   (:mod:`coworld.report.diagnostics`), the figures, and which runs are not finished (:mod:`coworld.report.tables`);
 * ``curves-<target>.png``, ``value_check.png``, ``ablation.png`` (:mod:`coworld.report.plots`).
 
-It works on what exists: a partial sweep reports its finished runs and draws the curves of all.
+It works on what exists: a partial sweep reports its finished runs and draws the curves of all. The files name run
+folders relative to ``out`` (and the sweep by its folder's name), so a report committed with its runs names no
+folder of the machine that made it.
 """
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
-from coworld.report.results import ONLINE_ALGO, RunResult, learning_curve, load_results, to_csv
+from coworld.report.results import ONLINE_ALGO, RunResult, learning_curve, load_results, shown_path, to_csv
 from coworld.storage import check_writable, write_text_atomically
 from coworld.text import count
 
@@ -51,8 +54,8 @@ def write_report(root: str | Path, out: str | Path | None = None) -> Report:
     """Read every run under ``root`` and write the report files into ``out`` (default ``root``)."""
     from coworld.report import plots, tables
 
-    root = Path(root)
-    out = Path(out) if out is not None else root
+    root = Path(os.path.abspath(root))  # every path read, and so every skipped file's line, starts with it
+    out = Path(os.path.abspath(out)) if out is not None else root
     skipped: list[str] = []
     results = load_results(root, skipped)
     skipped += [problem for r in results for problem in r.problems]
@@ -63,7 +66,7 @@ def write_report(root: str | Path, out: str | Path | None = None) -> Report:
     files = []
 
     csv_path = out / "results.csv"
-    write_text_atomically(csv_path, to_csv(results))
+    write_text_atomically(csv_path, to_csv(results, out))
     files.append(csv_path)
 
     figures: list[tuple[str, str]] = []
@@ -78,19 +81,21 @@ def write_report(root: str | Path, out: str | Path | None = None) -> Report:
     files += [out / name for _, name in figures]
 
     md_path = out / "report.md"
-    write_text_atomically(md_path, _markdown(root, results, figures, skipped))
+    write_text_atomically(md_path, _markdown(root, out, results, figures, skipped))
     files.insert(1, md_path)
     return Report(results, files, skipped)
 
 
-def _markdown(root: Path, results: list[RunResult], figures: list[tuple[str, str]], skipped: list[str]) -> str:
+def _markdown(
+    root: Path, out: Path, results: list[RunResult], figures: list[tuple[str, str]], skipped: list[str]
+) -> str:
     from coworld.report import tables
     from coworld.report.diagnostics import diagnostics_table
 
     finished = [r for r in results if r.final_return is not None]
     collectors = _collectors(results)
     lines = [
-        f"# Results: {root}",
+        f"# Results: {root.name}",
         "",
         f"{count(_run_count(results), 'run')}, {len(finished)} finished (with eval.json). Final return: mean ± std"
         " over seeds of each run's final evaluation; best mean per row in bold; (n=k) where a cell has fewer seeds"
@@ -118,7 +123,7 @@ def _markdown(root: Path, results: list[RunResult], figures: list[tuple[str, str
         lines += ["## Ablation (CoWorld terms switched off)", "", ablation, ""]
     from coworld.report.choice import choice_lines
 
-    choices = choice_lines(results, skipped)
+    choices = choice_lines(results, skipped, out)
     if choices:
         lines += [
             "## Source choice",
@@ -159,7 +164,7 @@ def _markdown(root: Path, results: list[RunResult], figures: list[tuple[str, str
         lines.append("")
     if skipped:
         lines += ["## Files skipped", "", "These could not be read; the report was made without them:", ""]
-        lines += [f"- {problem}" for problem in skipped]
+        lines += [f"- {_relative_line(problem, root, out)}" for problem in skipped]
         lines.append("")
     if collectors:
         lines += [
@@ -171,13 +176,22 @@ def _markdown(root: Path, results: list[RunResult], figures: list[tuple[str, str
         for r in collectors:
             curve = learning_curve(Path(r.run_dir), r.algo)
             last = f"last evaluation while learning {curve[-1][1]:.1f} at env step {curve[-1][0]:,}" if curve else ""
-            lines.append(f"- `{r.run_dir}` ({r.target}, seed {r.seed}): {last or 'no evaluation logged yet'}")
+            shown = shown_path(r.run_dir, out)
+            lines.append(f"- `{shown}` ({r.target}, seed {r.seed}): {last or 'no evaluation logged yet'}")
         lines.append("")
     unfinished = [r for r in results if r.final_return is None and r not in collectors]
     if unfinished:
         lines += ["## Not finished", "", "Runs without eval.json (training, failed, or never evaluated):", ""]
         for r in unfinished:
             done = f"{r.updates} updates logged" if r.updates is not None else "nothing logged yet"
-            lines.append(f"- `{r.run_dir}` ({r.label}, seed {r.seed}): {done}")
+            lines.append(f"- `{shown_path(r.run_dir, out)}` ({r.label}, seed {r.seed}): {done}")
         lines.append("")
     return "\n".join(lines)
+
+
+def _relative_line(problem: str, root: Path, out: Path) -> str:
+    """A skipped file's line, which starts with the file's path under ``root``, with that path relative to ``out``."""
+    prefix, folder = str(root) + os.sep, shown_path(root, out)
+    if not problem.startswith(prefix):
+        return problem
+    return problem[len(prefix) :] if folder == os.curdir else os.path.join(folder, problem[len(prefix) :])

@@ -6,17 +6,17 @@ from __future__ import annotations
 from pathlib import Path
 
 from coworld.errors import CoworldError
-from coworld.report.results import RunResult
+from coworld.report.results import RunResult, shown_path
 from coworld.training.source_choice import read_choice
 
 
-def choice_lines(results: list[RunResult], problems: list[str]) -> list[str]:
-    """One Markdown line per run with a source choice (the chosen in bold); a damaged record goes to
-    ``problems``."""
+def choice_lines(results: list[RunResult], problems: list[str], folder: Path) -> list[str]:
+    """One Markdown line per run with a source choice (the chosen in bold), naming the run relative to the report's
+    ``folder``; a damaged record goes to ``problems``."""
     lines = []
     for r in results:
         try:
-            choice = read_choice(Path(r.run_dir))
+            choice = read_choice(Path(r.run_dir), fix="the report leaves this run's source choice out")
         except CoworldError as err:
             problems.append(str(err))
             continue
@@ -28,5 +28,5 @@ def choice_lines(results: list[RunResult], problems: list[str]) -> list[str]:
             else f"{name} {choice.distances[name]:.4g}"
             for name in choice.candidates
         )
-        lines.append(f"- `{r.run_dir}` ({r.target}, seed {r.seed}): {listed}")
+        lines.append(f"- `{shown_path(r.run_dir, folder)}` ({r.target}, seed {r.seed}): {listed}")
     return lines

@@ -19,6 +19,7 @@ import numpy as np
 from coworld.errors import CoworldError
 from coworld.report.results import ONLINE_ALGO, RunResult, learning_curve, read_run_metrics, wall_clock_curve
 from coworld.report.tables import ALGO_ORDER
+from coworld.text import count
 
 
 def require_matplotlib() -> Any:
@@ -78,7 +79,7 @@ def learning_curves(results: Sequence[RunResult], target: str, path: Path) -> bo
             continue
         steps, mean, std = mean_band(curves)
         line = by_updates.plot(
-            steps, mean, label=f"{label} ({len(curves)} runs)", marker="o" if len(steps) < 12 else None
+            steps, mean, label=f"{label} ({count(len(curves), 'run')})", marker="o" if len(steps) < 12 else None
         )
         colour = line[0].get_color()
         by_updates.fill_between(steps, mean - std, mean + std, alpha=0.2, color=colour, linewidth=0)

@@ -13,6 +13,7 @@ import csv
 import io
 import json
 import math
+import os
 from collections.abc import Iterable, Mapping
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -302,30 +303,57 @@ def _mean(values: Any) -> float | None:
     return float(sum(values) / len(values))
 
 
+class UnreadableRun(CoworldError):
+    """A run folder the report leaves out: its ``config.json``, which says which seed it is, cannot be read."""
+
+
+def _seed(run_dir: Path) -> int:
+    """The run's seed (``config.json``); -1 where there is no config (an older collector's run folder). A config
+    that cannot be read, or has no whole-number seed, raises :class:`UnreadableRun` with the line that says so."""
+    problems: list[str] = []
+    config = _json_object(run_dir / "config.json", problems)
+    seed = -1 if config is None else config.get("seed")
+    if not problems and not (isinstance(seed, int) and not isinstance(seed, bool)):
+        problems.append(f"{run_dir / 'config.json'}: its seed is {seed!r}, not a whole number")
+    if problems:
+        raise UnreadableRun(f"{problems[0]}; the run is left out (which seed it is, is unknown)")
+    return seed
+
+
+def _foreign_evaluation(result: Mapping[str, Any] | None, info: Mapping[str, Any]) -> str:
+    """Why an ``eval.json`` does not score this run ('' where it does): an evaluation of another algorithm's agent (a
+    checkpoint copied in from another run), or in another task than the run's target (``coworld eval --task``)."""
+    if result is None:
+        return ""
+    extra = result.get("extra")
+    scored = extra.get("algo") if isinstance(extra, dict) else None
+    if scored is not None and scored != info["algo"]:
+        return f"an evaluation of a {scored} agent, but the run is {info['algo']}"
+    task = result.get("task")
+    if task is not None and task != info["target"]:
+        return f"an evaluation in {task}, not in the run's target {info['target']}"
+    return ""
+
+
 def load_result(run_dir: Path, qualities: dict[str, str | None] | None = None) -> RunResult:
     """The :class:`RunResult` of one run folder; a file of it that cannot be read is skipped and named in
-    ``problems``. ``qualities``: dataset path -> quality, read once per dataset of a report."""
+    ``problems`` (a ``config.json`` leaves the whole run out: :class:`UnreadableRun`). ``qualities``: dataset path
+    -> quality, read once per dataset of a report."""
     problems: list[str] = []
     info = run_description(_json_object(run_dir / "run.json", problems)) or {}
     algo, target = str(info["algo"]), str(info["target"])
     if info.get("online"):
         algo = ONLINE_ALGO  # the agent a `coworld collect --policy dreamerv2` trained in the target task itself
-    config = _json_object(run_dir / "config.json", problems) or {}
-    seed = config.get("seed", -1)
-    if not (isinstance(seed, int) and not isinstance(seed, bool)):
-        problems.append(f"{run_dir / 'config.json'}: its seed is {seed!r}, not a whole number")
-        seed = -1
+    seed = _seed(run_dir)
     variant, pair_source = _variant(run_dir, algo, problems)
     source = info.get("source") if isinstance(info.get("source"), str) else None
     source = source or pair_source
     final = std = success = estimate = true = capping = None
     episodes = None
     result = _json_object(run_dir / "eval.json", problems)
-    scored = (
-        result.get("extra", {}).get("algo") if result is not None and isinstance(result.get("extra"), dict) else None
-    )
-    if scored is not None and scored != info["algo"]:  # the evaluation of a checkpoint copied in from another run
-        problems.append(f"{run_dir / 'eval.json'}: an evaluation of a {scored} agent, but the run is {info['algo']}")
+    foreign = _foreign_evaluation(result, info)
+    if foreign:
+        problems.append(f"{run_dir / 'eval.json'}: {foreign}")
         result = None
     if result is not None:
         try:
@@ -373,23 +401,40 @@ def _cached_quality(path: Any, qualities: dict[str, str | None] | None) -> str |
 
 
 def load_results(root: str | Path, problems: list[str] | None = None) -> list[RunResult]:
-    """Every run under ``root``; raises CoworldError when there is none. Unreadable ``run.json`` files are skipped
-    with a line in ``problems`` (each run's other files: :attr:`RunResult.problems`)."""
+    """Every run under ``root``; raises CoworldError when there is none. Unreadable ``run.json`` files, and runs
+    whose ``config.json`` cannot be read, are skipped with a line in ``problems`` (each run's other files:
+    :attr:`RunResult.problems`)."""
+    problems = problems if problems is not None else []
     dirs = find_run_dirs(root, problems)
     if not dirs:
         raise CoworldError(f"no run folders (with a run.json) under {root}; run `coworld sweep` or `coworld train`")
     qualities: dict[str, str | None] = {}
-    return [load_result(d, qualities) for d in dirs]
+    results = []
+    for run_dir in dirs:
+        try:
+            results.append(load_result(run_dir, qualities))
+        except UnreadableRun as err:
+            problems.append(str(err))
+    return results
 
 
-def to_csv(results: Iterable[RunResult]) -> str:
-    """One row per run, columns :data:`CSV_COLUMNS`; empty cells where nothing was measured."""
+def shown_path(path: str | Path, folder: str | Path) -> str:
+    """``path`` as a report written in ``folder`` names it: relative to that folder, so that a report committed with
+    its runs names no folder of the machine that made it."""
+    return os.path.relpath(path, folder)
+
+
+def to_csv(results: Iterable[RunResult], folder: str | Path | None = None) -> str:
+    """One row per run, columns :data:`CSV_COLUMNS`; empty cells where nothing was measured. ``folder``: where the
+    CSV is written, which ``run_dir`` is relative to (:func:`shown_path`; as read without one)."""
     out = io.StringIO()
     writer = csv.DictWriter(out, fieldnames=CSV_COLUMNS, lineterminator="\n")
     writer.writeheader()
     for result in results:
         row = asdict(result)
         row["pair"] = result.pair
+        if folder is not None:
+            row["run_dir"] = shown_path(result.run_dir, folder)
         number = result.paper
         if number is not None:
             row.update(paper_return=number.mean, paper_std=number.std, paper_table=number.where)

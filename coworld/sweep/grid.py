@@ -556,11 +556,14 @@ def named_table(name: str) -> SweepSpec:
 
 def check_pair(source: str, target: str, algos: Sequence[str]) -> None:
     """A pair the grid's algorithms can serve (one CoworldError line otherwise): its source is one task or several
-    joined by ``+`` (CoWorld's automatic source choice), each known and none twice; CoWorld takes any action sizes,
-    a fine-tuned DreamerV2 one source of the target's (:func:`coworld.training.train.check_source`)."""
+    joined by ``+`` (CoWorld's automatic source choice), each known, none twice and none the target itself; CoWorld
+    takes any action sizes, a fine-tuned DreamerV2 one source of the target's
+    (:func:`coworld.training.train.check_source`)."""
     try:
         sources = parse_sources(source)
         envs.task_spec(target)
+        if target in sources:
+            raise CoworldError(f"source {target} is the target itself; pair the target with another domain")
         for algo in (a for a in algos if a in NEEDS_SOURCE):
             if len(sources) > 1 and algo != "coworld":
                 raise CoworldError(
@@ -575,11 +578,14 @@ def check_pair(source: str, target: str, algos: Sequence[str]) -> None:
 
 def parse_pairs(text: str) -> tuple[tuple[str, str], ...]:
     """``"a:b,c:d"`` -> ``(("a", "b"), ("c", "d"))``; ``"a+b:c"``: CoWorld choosing between sources a and b for
-    target c (:mod:`coworld.training.choice`). Task names are checked."""
+    target c (:mod:`coworld.training.choice`). Task names are checked; an empty pair (``"a:b,"``) is refused, as
+    ``train --source`` refuses an empty name."""
+    if not text.strip():
+        raise CoworldError("--pairs is empty; write SOURCE:TARGET[,SOURCE:TARGET...]")
     pairs = []
     for item in (part.strip() for part in text.split(",")):
         if not item:
-            continue
+            raise CoworldError(f"--pairs {text!r} has an empty pair; write SOURCE:TARGET[,SOURCE:TARGET...]")
         source, sep, target = item.partition(":")
         if not sep or not source or not target:
             raise CoworldError(
@@ -588,8 +594,6 @@ def parse_pairs(text: str) -> tuple[tuple[str, str], ...]:
         source = "+".join(parse_sources(source))
         envs.task_spec(target)
         pairs.append((source, target))
-    if not pairs:
-        raise CoworldError("--pairs is empty; write SOURCE:TARGET[,SOURCE:TARGET...]")
     return tuple(pairs)
 
 

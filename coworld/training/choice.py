@@ -56,7 +56,7 @@ from coworld.training.online import pretrain_source
 from coworld.training.run import seed_everything
 from coworld.training.source_choice import (
     CHOICE_FILE,
-    DISTANCES_FILE,
+    MEASURED_FILE,
     SourceChoice,
     candidate_dir,
     read_choice,
@@ -133,7 +133,7 @@ def choose_source(
             raise CheckpointError(f"{warm_path} is not this run's target warm-up; pass --force to start over")
         target = DreamerV2(config=config, action_size=target_size, device=device)
         target.load_state_dict(warm["agent"])
-        measured_path = run_dir / DISTANCES_FILE
+        measured_path = run_dir / MEASURED_FILE
         distances = read_distances(run_dir, candidates)
         batches = _batches(dataset, config, config.seed + SELECT_SEED, cfg.select_batches)
         for index, name in enumerate(candidates):

@@ -40,7 +40,7 @@ from coworld.training.checkpoint import CHECKPOINT_NAME, load_checkpoint, rng_st
 from coworld.training.choice import restore_warm_target, settle_source
 from coworld.training.evaluate import evaluate
 from coworld.training.job import TrainJob
-from coworld.training.logger import Logger, Rate
+from coworld.training.logger import Logger, Rate, check_finite
 from coworld.training.online import make_source_trainer, source_replay_writer
 from coworld.training.openloop import log_open_loop
 
@@ -158,6 +158,7 @@ class Algorithm1:
         for i in range(k1):
             interrupt.check()
             metrics = self.agent.train_target(next(self.agent.target_batches))
+            check_finite(metrics, self.agent.target.updates, "target update")
             self.bar.update(1)
             if (i + 1) % log_every == 0 or i + 1 == k1:
                 metrics["target/perf/updates_per_s"] = rate(self.agent.target.updates)

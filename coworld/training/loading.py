@@ -65,8 +65,13 @@ def open_run(path: str | Path) -> tuple[Path, Path, Config, dict[str, Any]]:
 def load_run_checkpoint(
     ckpt: Path, config: Config, info: Mapping[str, Any], *, keys: Sequence[str] = ("agent",), **load: Any
 ) -> dict[str, Any]:
-    """The checkpoint ``ckpt`` of the run described by ``config`` and ``info``, checked by :func:`check_matches`."""
-    state = load_checkpoint(ckpt, keys=keys, **load)
+    """The checkpoint ``ckpt`` of the run described by ``config`` and ``info``, checked by :func:`check_matches`;
+    one without an entry of ``keys`` is damaged, unless it is another run's (then that is what is said)."""
+    try:
+        state = load_checkpoint(ckpt, keys=keys, **load)
+    except CheckpointError:
+        check_matches(load_checkpoint(ckpt, mmap=True), ckpt, config, info)  # another run's is called that
+        raise
     check_matches(state, ckpt, config, info)
     return state
 
@@ -82,7 +87,7 @@ def check_matches(state: Mapping[str, Any], ckpt: Path, config: Config, info: Ma
     config (the config fixes every network's shape)."""
     expected = checkpoint_kind(info)
     label = f"{ckpt.parent} is a {info['algo']} run of {info['target']}"
-    fix = "it was copied from another run: put it back in the folder it came from, or evaluate that folder"
+    fix = "it was copied from another run: put it back in the folder it came from, or use that folder"
     if state.get("kind") != expected:
         raise CheckpointError(f"{ckpt} is a {state.get('kind')!r} checkpoint but {label}; {fix}")
     if "task" in state and state["task"] != info["target"]:

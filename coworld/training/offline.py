@@ -31,7 +31,7 @@ from coworld.training.checkpoint import (
     set_rng_state,
 )
 from coworld.training.evaluate import evaluate
-from coworld.training.logger import Logger, Rate
+from coworld.training.logger import Logger, Rate, check_finite
 from coworld.training.openloop import log_open_loop
 
 CHECKPOINT_KEYS = ("agent", "updates", "last_eval", "rng")
@@ -148,6 +148,7 @@ class OfflineTrainer:
                 interrupt.check()
                 metrics = self.agent.train(next(sampler))
                 self.updates += 1
+                check_finite(metrics, self.updates)
                 bar.update(1)
                 if self.updates % s.log_every == 0 or self.updates == s.updates:
                     metrics["perf/updates_per_s"] = update_rate(self.updates)  # this log window, evaluation included

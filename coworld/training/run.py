@@ -14,6 +14,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+import h5py
 import numpy as np
 import torch
 
@@ -78,8 +79,9 @@ def check_run_dir(logdir: str | Path, config: Config, info: Mapping[str, Any], s
         absent or new (no training artefacts, :data:`RUN_ARTEFACTS`).
 
     Raises:
-        CoworldError: the folder holds another run (other settings or tasks), an unreadable description, or
-        training artefacts that no ``config.json`` describes (a checkpoint copied in, say).
+        CoworldError: the folder holds another run (other settings or tasks), an unreadable description, training
+        artefacts that no ``config.json`` describes (a checkpoint copied in, say), or source experience of another
+        task than the run's source (:func:`check_source_replay`).
     """
     logdir = Path(logdir)
     config_path = logdir / "config.json"
@@ -107,7 +109,36 @@ def check_run_dir(logdir: str | Path, config: Config, info: Mapping[str, Any], s
                 f"{logdir} holds a run with {key}={saved_info[key]!r}, not {value!r};"
                 f" rerun with the same settings to resume, or {start_over}"
             )
+    check_source_replay(logdir, info, start_over)
     return True
+
+
+def check_source_replay(logdir: Path, info: Mapping[str, Any], start_over: str) -> None:
+    """The source experience a two-phase run records as its source agent learns (``source_replay.h5``, resumed
+    with the run) is of the run's source task: the one it names, or the one it chose among several (none before
+    the choice). One line otherwise, ending with ``start_over``; a file that cannot be read is left to the writer
+    that resumes it."""
+    from coworld.training.source_choice import CHOICE_FILE, trained_source
+
+    path = logdir / "source_replay.h5"
+    if not isinstance(info.get("source"), str) or not path.is_file():
+        return
+    try:
+        with h5py.File(path, "r") as f:
+            task = f.attrs.get("task")
+    except OSError:
+        return
+    task = task.decode() if isinstance(task, bytes) else task
+    source = trained_source(logdir, info)
+    if task == source:
+        return
+    if source is None:
+        whose = f"the run has not chosen among its sources {info['source']} yet ({CHOICE_FILE})"
+    else:
+        whose = f"the run's source is {source}" + (f" ({CHOICE_FILE})" if "," in info["source"] else "")
+    raise CoworldError(
+        f"{path} holds {task} experience but {whose}, so one of them comes from another run or was edited; {start_over}"
+    )
 
 
 def prepare_run_dir(logdir: str | Path, config: Config, info: Mapping[str, Any], start_over: str = START_OVER) -> bool:
@@ -158,13 +189,15 @@ def load_run(logdir: str | Path, fix: str = "") -> tuple[Config, dict[str, Any]]
     if not (logdir / "config.json").is_file() or not (logdir / "run.json").is_file():
         raise CoworldError(f"{logdir} is not a coworld run folder (no config.json / run.json)")
     config_data = read_json_object(logdir / "config.json", fix)
+    if not config_data:  # every key would take its default: the paper preset, not what was run
+        raise CoworldError(damaged(logdir / "config.json", "an empty object: it holds none of the run's settings", fix))
     try:
         config = from_dict(config_data)
     except ConfigError as err:
-        raise CoworldError(_damaged(logdir / "config.json", f"a config that does not build: {err}", fix)) from None
+        raise CoworldError(damaged(logdir / "config.json", f"a config that does not build: {err}", fix)) from None
     info = run_description(read_json_object(logdir / "run.json", fix))
     if not isinstance(info.get("algo"), str):
-        raise CoworldError(_damaged(logdir / "run.json", "no algo: it does not say what was trained", fix))
+        raise CoworldError(damaged(logdir / "run.json", "no algo: it does not say what was trained", fix))
     return config, info
 
 
@@ -174,15 +207,17 @@ def read_json_object(path: Path, fix: str = "") -> dict[str, Any]:
     try:
         data = json.loads(path.read_bytes().decode("utf-8"))
     except UnicodeDecodeError:
-        raise CoworldError(_damaged(path, "not UTF-8 text", fix)) from None
+        raise CoworldError(damaged(path, "not UTF-8 text", fix)) from None
     except json.JSONDecodeError as err:
-        raise CoworldError(_damaged(path, f"not JSON: {err}", fix)) from None
+        raise CoworldError(damaged(path, f"not JSON: {err}", fix)) from None
     if not isinstance(data, dict):
-        raise CoworldError(_damaged(path, f"JSON {type(data).__name__}, not an object", fix))
+        raise CoworldError(damaged(path, f"JSON {type(data).__name__}, not an object", fix))
     return data
 
 
-def _damaged(path: Path, why: str, fix: str) -> str:
+def damaged(path: Path, why: str, fix: str) -> str:
+    """The line that says ``path`` is damaged, why, and ``fix`` (what to do); without one, that coworld cannot read
+    it."""
     return f"{path} is damaged ({why})" + (f"; {fix}" if fix else "; it is not a run folder coworld can read")
 
 

@@ -34,6 +34,12 @@ def check_source(algo: str, source: str, target: str) -> list[str]:
     :func:`coworld.agents.coworld.source_model_action_size`). DreamerV2 fine-tuning carries the source agent's
     networks over to the target, so it needs one action size."""
     source_spec, target_spec = envs.task_spec(source), envs.task_spec(target)
+    if source == target:  # learning online in the target itself would not be offline RL from its dataset
+        paired = envs.paired_source(target) or "a task of the target's body (see `coworld tasks`)"
+        raise CoworldError(
+            f"source {target} is the target itself, but a source is another domain, learned online beside the"
+            f" target's dataset; pass another --source, e.g. --source {paired}"
+        )
     if algo != "coworld" and source_spec.action_size != target_spec.action_size:
         raise CoworldError(
             f"source {source} has {source_spec.action_size} action dimensions but target {target} has"
@@ -75,6 +81,12 @@ def check_job(
     if algo not in ALGOS:
         raise CoworldError(f"unknown algorithm {algo!r}; choose one of: {', '.join(ALGOS)}")
     target_spec = envs.task_spec(target)
+    extra = list(overrides)
+    if seed is not None:
+        extra.append(f"seed={seed}")
+    if device is not None:
+        extra.append(f"device={device}")
+    config = make_config(preset, extra)
     warnings: list[str] = []
     if algo in NEEDS_SOURCE:
         if source is None:
@@ -88,12 +100,6 @@ def check_job(
         for name in sources:
             warnings += check_source(algo, name, target)
         source = ",".join(sources)
-    extra = list(overrides)
-    if seed is not None:
-        extra.append(f"seed={seed}")
-    if device is not None:
-        extra.append(f"device={device}")
-    config = make_config(preset, extra)
     check_config(algo, config, target_spec.action_size)
     path = Path(dataset) if dataset is not None else default_dataset_path(target, "medium-replay")
     if not check_dataset(path, target, target_spec.action_size, needed_steps(algo, config)):
@@ -150,11 +156,9 @@ def check_resumable(run_dir: Path, config: Config, info: dict[str, Any]) -> None
         return
     sources = parse_sources(info["source"]) if info.get("source") else ()
     if len(sources) > 1:  # CoWorld choosing its source: each candidate's pretraining, the chosen one's once moved
-        from coworld.training.source_choice import candidate_dir, read_choice, read_distances
+        from coworld.training.source_choice import candidate_dir, read_choice
 
         choice = read_choice(run_dir, sources)
-        if choice is None:
-            read_distances(run_dir, sources)
         checks = [(candidate_dir(run_dir, name) / "source" / "checkpoint.pt", name) for name in sources]
         if choice is not None:
             checks.append((source, choice.chosen))

@@ -45,6 +45,8 @@ __all__ = [
     "tsne",
 ]
 
+NAME_THE_SOURCE = "name the run's source with --source TASK"
+"""What ``viz latents`` offers where a run's record of its source choice is damaged."""
 DOMAIN_COLOURS = {"source": "tab:blue", "target": "tab:orange"}
 ENCODER_MARKERS = {"source": "o", "target": "^", "model": "o"}
 
@@ -289,7 +291,7 @@ def latents_of_run(
 
     target_path = run_dataset(run.info, dataset)
     replay = run.run_dir / "source_replay.h5"
-    source_task = source or trained_source(run.run_dir, run.info)
+    source_task = source or trained_source(run.run_dir, run.info, NAME_THE_SOURCE)
     with contextlib.ExitStack() as stack:
         target = stack.enter_context(open_dataset(target_path))
         if target.task != run.info["target"]:

@@ -66,6 +66,23 @@ def test_a_refused_resume_says_why_without_first_claiming_to_resume(tmp_path, to
     assert "resuming" not in out
 
 
+@pytest.mark.parametrize("source", ["toy_reach_shifted", "toy_reach,toy_reach_shifted", "toy_reach+toy_reach_shifted"])
+def test_a_source_that_is_the_target_is_refused(tmp_path, toy_dataset, source, cli, one_line):
+    args = ["train", "--source", source, "--target", "toy_reach_shifted", "--dataset", str(toy_dataset), "--logdir",
+            str(tmp_path / "run"), "--preset", "tiny"]  # fmt: skip
+    one_line(*cli(*args), "source toy_reach_shifted is the target itself", "--source toy_reach")
+    assert not (tmp_path / "run").exists()
+
+
+def test_an_unknown_preset_is_named_before_a_missing_source(cli, one_line):
+    one_line(*cli("train", "--target", "toy_reach_shifted", "--preset", "foo"), "unknown preset 'foo'")
+
+
+def test_train_help_says_how_to_write_several_sources(cli):
+    code, out = cli("train", "--help")
+    assert code == 0 and "A,B,... or A+B+..." in " ".join(out.split())
+
+
 def test_the_missing_source_hint_names_the_targets_own_pair(cli, one_line):
     code, out = cli("train", "--target", "cheetah_nopaw")
     one_line(code, out, "--source cheetah_run")

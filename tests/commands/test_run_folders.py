@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import shutil
 from pathlib import Path
 
 import pytest
@@ -70,10 +71,57 @@ def test_report_does_not_count_an_evaluation_of_another_algorithm(tmp_path, toy_
     assert "an evaluation of a dreamerv2-penalty agent" in (tmp_path / "report" / "report.md").read_text()
 
 
+def test_viz_refuses_a_checkpoint_of_another_algorithm_as_copied_not_damaged(tmp_path, toy_dataset, make_run, cli,
+                                                                             one_line):  # fmt: skip
+    run = make_run(tmp_path / "run", "coworld", toy_dataset, checkpoint_of="dreamerv2-finetune-ewc")  # intact
+    out = tmp_path / "p.png"
+    code, text = cli("viz", "predictions", "--ckpt", str(run), "--out", str(out), "--device", "cpu", "--length", "8")
+    line = one_line(code, text, "'dreamerv2-finetune-ewc' checkpoint", "is a coworld run", "copied from another run")
+    assert "damaged" not in line and not out.exists()
+
+
+def test_train_refuses_a_source_replay_of_another_task_with_its_own_options(tmp_path, toy_dataset, cli, one_line):
+    job = check_job(algo="coworld", source="toy_reach", target=TARGET, dataset=toy_dataset, preset="tiny",
+                    logdir=tmp_path / "run", seed=0, device="cpu", overrides=())  # fmt: skip
+    prepare_run_dir(job.logdir, job.config, job.info())
+    shutil.copy(toy_dataset, job.logdir / "source_replay.h5")  # a toy_reach_shifted dataset, not toy_reach's
+    before = digest(job.logdir)
+    code, out = cli(*train(job.logdir, toy_dataset, "--source", "toy_reach"))
+    line = one_line(code, out, "source_replay.h5 holds toy_reach_shifted experience", "--logdir", "--force")
+    assert "--out" not in line and digest(job.logdir) == before
+
+
+def test_train_refuses_a_source_choice_edited_to_another_candidate(tmp_path, toy_dataset, toy_dataset_writer, cli,
+                                                                   one_line):  # fmt: skip
+    candidates = "toy_reach,toy_reach_centre"
+    job = check_job(algo="coworld", source=candidates, target=TARGET, dataset=toy_dataset, preset="tiny",
+                    logdir=tmp_path / "run", seed=0, device="cpu", overrides=())  # fmt: skip
+    prepare_run_dir(job.logdir, job.config, job.info())
+    toy_dataset_writer(job.logdir / "source_replay.h5", "toy_reach", episodes=1)  # the chosen candidate's experience
+    choice = {
+        "candidates": candidates.split(","),
+        "distances": {"toy_reach": 1.0, "toy_reach_centre": 2.0},
+        "chosen": "toy_reach_centre",
+        "align_on": "latent",
+        "batches": 8,
+    }  # edited: it chose toy_reach
+    (job.logdir / "source_choice.json").write_text(json.dumps(choice))
+    before = digest(job.logdir)
+    code, out = cli(*train(job.logdir, toy_dataset, "--source", candidates))
+    line = one_line(code, out, "source_replay.h5 holds toy_reach experience", "toy_reach_centre", "--force")
+    assert "--out" not in line and digest(job.logdir) == before
+
+
+def train(logdir: Path, dataset: Path, *extra: str) -> list[str]:
+    return ["train", "--target", TARGET, "--dataset", str(dataset), "--logdir", str(logdir), "--preset", "tiny",
+            "--device", "cpu", "--seed", "0", "--no-progress", *extra]  # fmt: skip
+
+
 DAMAGED = {
     "a number": b"5",
     "a list": b"[]",
     "null": b"null",
+    "an empty object": b"{}",
     "not UTF-8": b"\xff\xfe\x00garbage",
     "no algo": b'{"target": "toy_reach_shifted"}',
     "an unknown algo": b'{"algo": "ppo", "target": "toy_reach_shifted"}',

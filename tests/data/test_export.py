@@ -82,7 +82,7 @@ def test_minari_export_loads_back_in_minari_and_matches_every_episode(
     result = CliRunner().invoke(main, ["dataset", "export", str(source), "--to", "minari", "--author", "Ada"])
     assert result.exit_code == 0, result.output
     name = "coworld/walker_walk/medium-replay-v0"  # the default name: coworld/<task>/<quality>-v0
-    assert f"wrote Minari dataset {name}" in result.stdout
+    assert f"wrote Minari dataset {name} in {minari_root / name}:" in result.stdout  # where it went, too
     data_dir = minari_root / name / "data"
     assert sorted(p.name for p in data_dir.iterdir()) == ["main_data.hdf5", "metadata.json"]
     assert not list((minari_root / "coworld/walker_walk").glob(".*"))  # no temporary folder left

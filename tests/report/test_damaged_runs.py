@@ -24,21 +24,22 @@ def run_folder(root: Path, name: str, *, returns: list[float] | None = None, see
     return run
 
 
-DAMAGE = {
-    "metrics.jsonl": (b'{"step": 1}\n\xff\xfe not utf-8\n', "not UTF-8 text"),
-    "config.json": (b'["valid JSON", "of the wrong shape"]', "holds a JSON list, not an object"),
-    "eval.json": (b'{"returns": "many"', "not JSON"),
-    "sweep-run.json": (b"\xff\xff", "not JSON"),
+DAMAGE = {  # case: (file, content, what the line says)
+    "metrics.jsonl": ("metrics.jsonl", b'{"step": 1}\n\xff\xfe not utf-8\n', "not UTF-8 text"),
+    "config.json": ("config.json", b'["valid JSON", "of the wrong shape"]', "holds a JSON list, not an object"),
+    "config.json without a seed": ("config.json", b"{}", "its seed is None, not a whole number"),
+    "eval.json": ("eval.json", b'{"returns": "many"', "not JSON"),
+    "sweep-run.json": ("sweep-run.json", b"\xff\xff", "not JSON"),
 }
 
 
-@pytest.mark.parametrize("name", sorted(DAMAGE))
-def test_a_damaged_file_is_skipped_with_one_line_and_the_rest_is_reported(tmp_path, processes, name):
+@pytest.mark.parametrize("case", sorted(DAMAGE))
+def test_a_damaged_file_is_skipped_with_one_line_and_the_rest_is_reported(tmp_path, processes, case):
     pytest.importorskip("matplotlib")
     pytest.importorskip("scipy")
     good = run_folder(tmp_path, "good", returns=[10.0, 20.0])
     bad = run_folder(tmp_path, "bad", returns=[1.0], seed=1)
-    content, reason = DAMAGE[name]
+    name, content, reason = DAMAGE[case]
     (bad / name).write_bytes(content)
     done = processes.run_cli("report", str(tmp_path), timeout=120)
     assert done.returncode == 0, done.stderr
@@ -46,9 +47,36 @@ def test_a_damaged_file_is_skipped_with_one_line_and_the_rest_is_reported(tmp_pa
     assert warnings == [f"warning: skipped {bad / name}: " + warnings[0].split(": ", 2)[2]], done.stderr
     assert reason in warnings[0] and "Traceback" not in done.stderr
     rows = {row["run_dir"]: row for row in csv.DictReader(io.StringIO((tmp_path / "results.csv").read_text()))}
-    assert rows[str(good)]["final_return"] == "15.0"  # the good run is whole
-    assert set(rows) == {str(good), str(bad)}
-    assert f"- {bad / name}:" in (tmp_path / "report.md").read_text()
+    assert rows[good.name]["final_return"] == "15.0"  # the good run is whole
+    if name == "config.json":  # which seed the run is, is unknown: it is left out, and the line says so
+        assert set(rows) == {good.name} and "the run is left out" in warnings[0]
+    else:
+        assert set(rows) == {good.name, bad.name}
+    assert f"- bad/{name}:" in (tmp_path / "report.md").read_text()
+
+
+CHOICES = {
+    "not JSON": b"{",
+    "no candidates": json.dumps(
+        {"candidates": [], "distances": {}, "chosen": "toy_reach", "align_on": "latent", "batches": 8}
+    ).encode(),  # fmt: skip
+}
+
+
+@pytest.mark.parametrize("damage", sorted(CHOICES))
+def test_a_damaged_source_choice_is_skipped_with_a_line_that_names_no_option_of_another_command(tmp_path, processes,
+                                                                                                damage):  # fmt: skip
+    pytest.importorskip("matplotlib")
+    pytest.importorskip("scipy")
+    run = run_folder(tmp_path, "run", returns=[1.0])
+    (run / "run.json").write_text(json.dumps({"algo": "coworld", "source": "toy_reach,toy_reach_centre",
+                                              "target": "toy_reach_shifted"}))  # fmt: skip
+    (run / "source_choice.json").write_bytes(CHOICES[damage])
+    done = processes.run_cli("report", str(tmp_path), timeout=120)
+    assert done.returncode == 0, done.stderr
+    line = processes.last_word(done.stderr, "warning: ")
+    assert line.startswith(f"warning: skipped {run / 'source_choice.json'} is damaged"), line
+    assert "--" not in line and "source choice out" in line  # report has no --force, no --logdir
 
 
 def test_an_unreadable_eval_json_is_named_not_called_never_evaluated(tmp_path, processes):

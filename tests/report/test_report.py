@@ -129,6 +129,50 @@ def test_results_csv_one_row_per_run(tmp_path, score_scale):
     assert unfinished["final_return"] == "" and unfinished["updates"] == "7"
 
 
+def test_the_report_names_run_folders_relative_to_its_own_folder(tmp_path, score_scale):
+    """A committed report names no folder of the machine that made it: runs relative to where it is written."""
+    sweep = tmp_path / "sweeps" / "toy"
+    make_grid(sweep)
+    (sweep / "dv-a1" / "eval.json").write_text("{")  # a skipped file is named the same way
+    for out, prefix in ((sweep, ""), (tmp_path / "reports" / "toy", "../../sweeps/toy/")):
+        write_report(sweep, out)
+        rows = list(csv.DictReader(io.StringIO((out / "results.csv").read_text())))
+        assert sorted(row["run_dir"] for row in rows)[:2] == [f"{prefix}cw-a0", f"{prefix}cw-a1"]
+        text = (out / "report.md").read_text()
+        assert text.startswith("# Results: toy\n") and str(tmp_path) not in text
+        assert f"- `{prefix}cw-b2` (coworld, seed 2): 7 updates logged" in text
+        assert f"- {prefix}dv-a1/eval.json: not JSON" in text
+
+
+def test_an_evaluation_in_another_task_is_not_counted(tmp_path):
+    run = make_run(tmp_path, "lompo", algo="lompo", target="toy_reach_shifted", seed=0)
+    record = {"task": "robodesk_push_button", "returns": [158.0], "std": 0.0, "extra": {"algo": "lompo"}}
+    (run / "eval.json").write_text(json.dumps(record))  # `coworld eval --task` writes into the run folder too
+    result = load_result(run)
+    assert result.final_return is None and result.normalized_score is None
+    assert result.problems == (
+        f"{run / 'eval.json'}: an evaluation in robodesk_push_button, not in the run's target toy_reach_shifted",
+    )
+    assert write_report(tmp_path).finished == 0
+
+
+def test_the_curves_legend_counts_runs_in_the_singular_and_plural(tmp_path, monkeypatch):
+    pytest.importorskip("matplotlib")
+    from matplotlib.figure import Figure
+
+    from coworld.report.plots import learning_curves
+
+    records = [{"step": 10, "eval/return": 1.0, "eval/value_estimate": 0.5}]  # a CoWorld target's evaluation
+    make_run(tmp_path, "cw", algo="coworld", source="toy_reach", target="toy_reach_shifted", seed=0, records=records)
+    for seed in range(2):
+        make_run(tmp_path, f"dv{seed}", algo="dreamerv2", target="toy_reach_shifted", seed=seed, records=records)
+    drawn = []
+    monkeypatch.setattr(Figure, "savefig", lambda fig, *a, **k: drawn.append(fig))
+    assert learning_curves(load_results(tmp_path), "toy_reach_shifted", tmp_path / "c.png")
+    legend = [text.get_text() for text in drawn[0].axes[0].get_legend().get_texts()]
+    assert legend == ["dreamerv2 (2 runs)", "coworld (1 run)"]
+
+
 def test_report_files_and_unfinished_runs(tmp_path, score_scale):
     make_grid(tmp_path)
     out = CliRunner().invoke(main, ["report", str(tmp_path)])

@@ -152,6 +152,8 @@ def test_sigterm_stops_the_sweep_and_its_child_with_exit_code_143(tmp_path, proc
         (["--table", "toy-cpu", "--set", "penalty.model_updates=100000", "--dry-run"], ["penalty.model_updates"]),
         (["--pairs", "toy_reach:toy_reach_shifted", "--preset", "tiny", "--set", "penalty.ensemble=1000000000"],
          ["penalty.ensemble", "GiB"]),
+        (["--pairs", "toy_reach:toy_reach_shifted", "--algos", "lompo", "--preset", "tiny", "--set",
+          "lompo.batch_size=1000000000", "--dry-run"], ["the lompo runs", "lompo.batch_size", "GiB"]),
     ],
 )  # fmt: skip
 def test_the_rules_train_applies_are_checked_for_every_run_before_the_folder_exists(tmp_path, args, needles):
@@ -163,6 +165,27 @@ def test_a_rule_train_applies_refuses_a_real_sweep_process_before_collecting(tmp
     done = processes.run_cli("sweep", "--pairs", "toy_reach:toy_reach_shifted", "--preset", "tiny", "--set",
                              "penalty.model_updates=40", "--dir", str(tmp_path / "s"))  # fmt: skip
     assert done.returncode == 2 and "penalty.model_updates=40" in processes.last_word(done.stderr, "error: ")
+    assert not (tmp_path / "s").exists()
+
+
+@pytest.mark.parametrize(
+    ("args", "needles"),
+    [
+        (["--pairs", "toy_reach:toy_reach_shifted,"], ["--pairs", "empty pair", "SOURCE:TARGET"]),
+        (["--pairs", "toy_reach_shifted:toy_reach_shifted"], ["pair toy_reach_shifted:toy_reach_shifted", "target"]),
+        (["--pairs", "toy_reach+toy_reach_shifted:toy_reach_shifted"], ["source toy_reach_shifted is the target"]),
+    ],
+)
+def test_pairs_train_would_refuse_are_refused(tmp_path, args, needles):
+    refused(["sweep", *args, "--preset", "tiny", "--dir", str(tmp_path / "s"), "--dry-run"], *needles)
+    assert not (tmp_path / "s").exists()
+
+
+def test_a_grid_file_and_a_table_are_not_combined(tmp_path):
+    grid = tmp_path / "grid.toml"
+    grid.write_text(TOY)
+    refused(["sweep", "--grid", str(grid), "--table", "toy", "--dir", str(tmp_path / "s"), "--dry-run"], "--grid",
+            "--table")  # fmt: skip
     assert not (tmp_path / "s").exists()
 
 

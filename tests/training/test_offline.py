@@ -7,9 +7,11 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pytest
 
 from coworld.config import make_config
 from coworld.data import open_dataset
+from coworld.errors import TrainingDiverged
 from coworld.training.logger import Logger
 from coworld.training.offline import OfflineSchedule, OfflineTrainer
 
@@ -72,3 +74,36 @@ def test_prefetching_trains_on_the_same_batches_in_the_same_order(tmp_path: Path
     assert {b["prepared_on"] for b in ahead} == {"coworld-prefetch_0"}
     assert not [t for t in threading.enumerate() if t.name.startswith("coworld-prefetch")]
     assert not np.array_equal(plain[0]["image"], plain[1]["image"])  # batches that differ, so the order counts
+
+
+class Diverging(Recorder):
+    """An agent whose loss stops being a number at its fourth update."""
+
+    def train(self, batch: dict[str, Any]) -> dict[str, float]:
+        super().train(batch)
+        return {"wm/loss": float("nan") if len(self.batches) >= 4 else 1.0, "actor/entropy": 0.5}
+
+
+def test_a_loss_that_stops_being_a_number_stops_the_run_before_its_weights_are_kept(
+    tmp_path: Path, toy_dataset_writer
+) -> None:
+    path = toy_dataset_writer(tmp_path / "d.h5", "toy_reach", episodes=2)
+    config = make_config("tiny")
+    agent = Diverging()
+    schedule = OfflineSchedule(updates=7, log_every=1, eval_every=100, eval_episodes=1, checkpoint_every=3)
+    saved: list[int] = []
+    with open_dataset(path) as dataset, Logger(tmp_path / "run") as logger:
+        trainer = OfflineTrainer(
+            agent=agent,
+            kind="recorder",
+            task="toy_reach",
+            config=config,
+            schedule=schedule,
+            logdir=tmp_path / "run",
+            logger=logger,
+            make_sampler=lambda seed: iter(dataset.sampler(4, 8, seed=seed)),
+        )
+        trainer.save = lambda: saved.append(trainer.updates)  # type: ignore[method-assign]
+        with pytest.raises(TrainingDiverged, match=r"^wm/loss is nan at update 4: the run diverged"):
+            trainer.run(progress=False)
+    assert saved == [3] and len(agent.batches) == 4  # the checkpoint of update 3 is the last; nothing after it

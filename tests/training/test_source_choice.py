@@ -21,12 +21,14 @@ from coworld.agents.dreamerv2 import DreamerV2
 from coworld.cli import main
 from coworld.config import make_config
 from coworld.data import open_dataset
+from coworld.errors import CoworldError
 from coworld.losses.coworld import closest_source, domain_distance
 from coworld.training import choice as choice_module
 from coworld.training.choice import measure_distance
-from coworld.training.run import clear_run_dir
-from coworld.training.source_choice import CHOICE_FILE, candidate_dir, read_choice
+from coworld.training.run import clear_run_dir, prepare_run_dir
+from coworld.training.source_choice import CHOICE_FILE, candidate_dir, read_choice, trained_source
 from coworld.training.train import check_job, run_job
+from coworld.viz.latents import NAME_THE_SOURCE
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -181,6 +183,46 @@ def test_bad_lists_of_sources_get_one_line_and_exit_2(tmp_path: Path, toy_datase
     assert out.exit_code == 2, out.output
     assert message in out.output and len(out.output.strip().splitlines()) == 1
     assert not run.exists()
+
+
+@pytest.mark.parametrize(
+    ("measured", "why"),
+    [
+        (b"{", "not JSON"),
+        (b"[]", "JSON list, not an object"),
+        (b'{"toy_reach": 1.5}\xe9', "not UTF-8 text"),
+        (b'{"toy_reach": "far"}', "the distance of toy_reach is 'far', not a number"),
+        (b'{"toy_reach": null}', "the distance of toy_reach is None, not a number"),
+        (b'{"walker_walk": 1.5}', "walker_walk is not a candidate of this run"),
+    ],
+)
+def test_damaged_distances_are_refused_before_any_candidate_is_pretrained(
+    tmp_path: Path, toy_dataset_writer, measured: bytes, why: str
+) -> None:
+    dataset = toy_dataset_writer(tmp_path / "target.h5", "toy_reach_shifted", episodes=1)
+    run = tmp_path / "run"
+    job = _job(dataset, run)
+    prepare_run_dir(job.logdir, job.config, job.info())
+    (run / "selection").mkdir()
+    (run / "selection" / "distances.json").write_bytes(measured)
+    before = sorted(p.relative_to(run) for p in run.rglob("*"))
+    args = ["train", "--source", CANDIDATES, "--target", "toy_reach_shifted", "--dataset", str(dataset), "--preset"]
+    args += ["tiny", "--logdir", str(run), "--seed", "0", "--no-progress"]
+    out = CliRunner().invoke(main, args + [arg for item in SCHEDULE for arg in ("--set", item)])
+    lines = out.output.strip().splitlines()
+    assert out.exit_code == 2 and len(lines) == 1 and "Traceback" not in out.output, out.output
+    assert lines[0].startswith(f"error: {run / 'selection' / 'distances.json'} is damaged ({why}")
+    assert "delete it" in lines[0] and "--force" in lines[0]
+    assert sorted(p.relative_to(run) for p in run.rglob("*")) == before  # nothing warmed up or pretrained
+
+
+def test_a_damaged_choice_ends_with_what_the_calling_command_offers(tmp_path: Path) -> None:
+    (tmp_path / CHOICE_FILE).write_text('{"candidates": []}')
+    info = {"algo": "coworld", "source": CANDIDATES, "target": "toy_reach_shifted"}
+    with pytest.raises(CoworldError, match=r"is damaged .*; pass a new --logdir, or --force to start this one over$"):
+        read_choice(tmp_path)  # train's, by default: it is the command that writes the choice
+    with pytest.raises(CoworldError, match=r"is damaged .*; name the run's source with --source TASK$"):
+        trained_source(tmp_path, info, NAME_THE_SOURCE)  # viz latents'
 
 
 def test_a_list_of_sources_for_an_algorithm_without_a_source_is_one_note(tmp_path: Path, toy_dataset_writer) -> None:
