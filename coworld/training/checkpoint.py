@@ -20,6 +20,7 @@ from typing import IO, Any
 import numpy as np
 import torch
 
+from coworld.config import to_dict
 from coworld.errors import CheckpointError, StorageError
 from coworld.storage import WRITE_ERRNOS, failure_errno, failure_reason
 
@@ -160,3 +161,24 @@ def _numpy_state() -> tuple[str, list[int], int, int, float]:
     # NumPy's legacy state holds an array, which the weights-only loader refuses: keep it as a list.
     name, key, pos, has_gauss, cached = np.random.get_state(legacy=True)  # type: ignore[misc]
     return str(name), [int(k) for k in key], int(pos), int(has_gauss), float(cached)
+
+
+def read_run_checkpoint(path: Path, agent: Any, kind: str, keys: tuple[str, ...]) -> dict[str, Any]:
+    """The checkpoint at ``path`` of a run of ``kind`` (an offline or an online one), its tensors on ``agent``'s
+    device, holding ``keys``; one of another kind is refused (CheckpointError)."""
+    state = load_checkpoint(path, map_location=getattr(agent, "device", "cpu"), keys=keys)
+    if state.get("kind") != kind:
+        raise CheckpointError(f"{path} is a {state.get('kind')!r} checkpoint, not {kind!r}")
+    return state
+
+
+def restore_agent(agent: Any, state: dict[str, Any], path: Path, what: str) -> None:
+    """Load a run checkpoint's ``state`` (from ``path``) into ``agent`` (described as ``what`` where it does not
+    fit), and the random state the run had when it was saved."""
+    load_agent_state(agent, state["agent"], path, what)
+    set_rng_state(state["rng"])
+
+
+def run_state(kind: str, task: str, config: Any, agent: Any) -> dict[str, Any]:
+    """What every run checkpoint holds beyond its counters: its kind, task, config, agent and random state."""
+    return {"kind": kind, "task": task, "config": to_dict(config), "agent": agent.state_dict(), "rng": rng_state()}

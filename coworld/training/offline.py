@@ -18,18 +18,9 @@ from typing import Any
 import numpy as np
 
 from coworld import interrupt
-from coworld.config import to_dict
 from coworld.data.prefetch import prefetched, stop_prefetch
-from coworld.errors import CheckpointError
 from coworld.progress import progress_bar
-from coworld.training.checkpoint import (
-    CHECKPOINT_NAME,
-    load_agent_state,
-    load_checkpoint,
-    rng_state,
-    save_checkpoint,
-    set_rng_state,
-)
+from coworld.training.checkpoint import CHECKPOINT_NAME, read_run_checkpoint, restore_agent, run_state, save_checkpoint
 from coworld.training.evaluate import evaluate
 from coworld.training.logger import Logger, Rate, check_finite
 from coworld.training.openloop import log_open_loop
@@ -38,27 +29,6 @@ CHECKPOINT_KEYS = ("agent", "updates", "last_eval", "rng")
 """What an offline run's checkpoint holds beyond its kind (:meth:`OfflineTrainer.save`)."""
 
 SamplerFactory = Callable[[int], Iterator[dict[str, np.ndarray]]]
-
-
-def read_run_checkpoint(path: Path, agent: Any, kind: str, keys: tuple[str, ...]) -> dict[str, Any]:
-    """The checkpoint at ``path`` of a run of ``kind`` (an offline or an online one), its tensors on ``agent``'s
-    device, holding ``keys``; one of another kind is refused (CheckpointError)."""
-    state = load_checkpoint(path, map_location=getattr(agent, "device", "cpu"), keys=keys)
-    if state.get("kind") != kind:
-        raise CheckpointError(f"{path} is a {state.get('kind')!r} checkpoint, not {kind!r}")
-    return state
-
-
-def restore_agent(agent: Any, state: dict[str, Any], path: Path, what: str) -> None:
-    """Load a run checkpoint's ``state`` (from ``path``) into ``agent`` (described as ``what`` where it does not
-    fit), and the random state the run had when it was saved."""
-    load_agent_state(agent, state["agent"], path, what)
-    set_rng_state(state["rng"])
-
-
-def run_state(kind: str, task: str, config: Any, agent: Any) -> dict[str, Any]:
-    """What every run checkpoint holds beyond its counters: its kind, task, config, agent and random state."""
-    return {"kind": kind, "task": task, "config": to_dict(config), "agent": agent.state_dict(), "rng": rng_state()}
 
 
 @dataclass(frozen=True)

@@ -46,10 +46,9 @@ from coworld import envs, interrupt
 from coworld.config import Config
 from coworld.data import DatasetWriter, open_dataset
 from coworld.progress import progress_bar
-from coworld.training.checkpoint import CHECKPOINT_NAME, save_checkpoint
+from coworld.training.checkpoint import CHECKPOINT_NAME, read_run_checkpoint, restore_agent, run_state, save_checkpoint
 from coworld.training.evaluate import evaluate
 from coworld.training.logger import Logger, Rate
-from coworld.training.offline import read_run_checkpoint, restore_agent, run_state
 from coworld.training.openloop import log_open_loop
 from coworld.training.replay import Replay
 
