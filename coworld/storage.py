@@ -8,14 +8,16 @@ the HDF5 error text, which carries the errno of the failed ``write``.
 from __future__ import annotations
 
 import errno
+import json
 import os
 import re
 import resource
 import shutil
 import tempfile
 from pathlib import Path
+from typing import Any
 
-from coworld.errors import StorageError
+from coworld.errors import CoworldError, StorageError
 
 WRITE_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM, errno.EFBIG})
 """The errors of a write that a person fixes outside the program (free space, another folder, permissions)."""
@@ -117,3 +119,23 @@ def fsync_path(path: str | os.PathLike[str]) -> None:
         os.fsync(fd)
     finally:
         os.close(fd)
+
+
+def read_json_object(path: Path, fix: str = "") -> dict[str, Any]:
+    """The JSON object in ``path``; bytes that are not UTF-8, text that is not JSON, or JSON of another shape raise
+    one CoworldError line naming the file."""
+    try:
+        data = json.loads(path.read_bytes().decode("utf-8"))
+    except UnicodeDecodeError:
+        raise CoworldError(damaged(path, "not UTF-8 text", fix)) from None
+    except json.JSONDecodeError as err:
+        raise CoworldError(damaged(path, f"not JSON: {err}", fix)) from None
+    if not isinstance(data, dict):
+        raise CoworldError(damaged(path, f"JSON {type(data).__name__}, not an object", fix))
+    return data
+
+
+def damaged(path: Path, why: str, fix: str) -> str:
+    """The line that says ``path`` is damaged, why, and ``fix`` (what to do); without one, that coworld cannot read
+    it."""
+    return f"{path} is damaged ({why})" + (f"; {fix}" if fix else "; it is not a run folder coworld can read")

@@ -14,6 +14,9 @@ from coworld import envs
 from coworld.config import Config
 from coworld.errors import CoworldError
 
+START_OVER = "pass a new --logdir, or --force to start this one over"
+"""How ``coworld train`` starts a run folder of other settings over; the collector names its own options."""
+
 ALGOS = (
     "coworld",
     "dreamerv2",

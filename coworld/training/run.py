@@ -21,7 +21,8 @@ import torch
 from coworld.config import Config, first_difference, from_dict, split_preset, to_dict, to_json
 from coworld.devices import resolve_device
 from coworld.errors import ConfigError, CoworldError
-from coworld.storage import write_text_atomically
+from coworld.storage import damaged, read_json_object, write_text_atomically
+from coworld.training.job import START_OVER
 
 
 def seed_everything(seed: int) -> None:
@@ -64,10 +65,6 @@ RUN_ARTEFACTS = (
 """What training leaves in a run folder besides its description (``run.json``, then ``config.json``, written
 last): a folder holding any of these but no ``config.json`` was not described by ``coworld train``, or was
 damaged, and is refused rather than resumed. Other files (a sweep's record, notes) are left alone."""
-
-
-START_OVER = "pass a new --logdir, or --force to start this one over"
-"""How ``coworld train`` starts a run folder of other settings over; the collector names its own options."""
 
 
 def check_run_dir(logdir: str | Path, config: Config, info: Mapping[str, Any], start_over: str = START_OVER) -> bool:
@@ -199,26 +196,6 @@ def load_run(logdir: str | Path, fix: str = "") -> tuple[Config, dict[str, Any]]
     if not isinstance(info.get("algo"), str):
         raise CoworldError(damaged(logdir / "run.json", "no algo: it does not say what was trained", fix))
     return config, info
-
-
-def read_json_object(path: Path, fix: str = "") -> dict[str, Any]:
-    """The JSON object in ``path``; bytes that are not UTF-8, text that is not JSON, or JSON of another shape raise
-    one CoworldError line naming the file."""
-    try:
-        data = json.loads(path.read_bytes().decode("utf-8"))
-    except UnicodeDecodeError:
-        raise CoworldError(damaged(path, "not UTF-8 text", fix)) from None
-    except json.JSONDecodeError as err:
-        raise CoworldError(damaged(path, f"not JSON: {err}", fix)) from None
-    if not isinstance(data, dict):
-        raise CoworldError(damaged(path, f"JSON {type(data).__name__}, not an object", fix))
-    return data
-
-
-def damaged(path: Path, why: str, fix: str) -> str:
-    """The line that says ``path`` is damaged, why, and ``fix`` (what to do); without one, that coworld cannot read
-    it."""
-    return f"{path} is damaged ({why})" + (f"; {fix}" if fix else "; it is not a run folder coworld can read")
 
 
 def run_description(info: Any) -> Any:

@@ -9,7 +9,8 @@ from pathlib import Path
 from typing import Any
 
 from coworld.errors import CheckpointError
-from coworld.training.run import START_OVER, damaged, read_json_object
+from coworld.storage import damaged, read_json_object
+from coworld.training.job import START_OVER
 
 CHOICE_FILE = "source_choice.json"
 """The choice and every candidate's distance, in the run folder."""
