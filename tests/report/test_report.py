@@ -182,7 +182,7 @@ def test_report_files_and_unfinished_runs(tmp_path, score_scale):
     assert "| toy_reach → toy_reach_shifted | 11.3 ± 1.9 | **35.0 ± 8.2** |" in text
     assert "## Not finished" in text and "cw-b2" in text and "7 updates logged" in text
     # value check: dreamerv2 9.00 vs 1.00 on the shifted task (the runs with eval.json's value check)
-    assert "| toy_reach → toy_reach_shifted | dreamerv2 | 9.00 | 1.00 | 3 |" in text
+    assert "| toy_reach → toy_reach_shifted | dreamerv2 | 9.00 | 1.00 | – | 3 |" in text
     for name in ("value_check.png",):
         assert (tmp_path / name).read_bytes()[:4] == b"\x89PNG"
     assert not (tmp_path / "ablation.png").exists()  # no CoWorld variants here
@@ -229,8 +229,8 @@ def test_ablation_from_plain_runs_and_from_sweep_records(tmp_path, score_scale):
     assert results_table(results).count("\n") == 3  # the main table: CoWorld as configured only
     values = value_table(results).splitlines()  # the value check tells the variants apart
     assert values[2:] == [
-        "| toy_reach → toy_reach_shifted | coworld | 5.50 | 4.00 | 2 |",
-        "| toy_reach → toy_reach_shifted | coworld (no-align) | 9.00 | 4.00 | 2 |",
+        "| toy_reach → toy_reach_shifted | coworld | 5.50 | 4.00 | – | 2 |",
+        "| toy_reach → toy_reach_shifted | coworld (no-align) | 9.00 | 4.00 | – | 2 |",
     ]
     write_report(tmp_path)
     assert (tmp_path / "ablation.png").read_bytes()[:4] == b"\x89PNG"
@@ -298,10 +298,14 @@ def test_a_fine_tuned_run_reports_its_target_updates_and_evaluations_not_its_sou
 def test_coworld_diagnostics_summarise_each_term_from_the_logs(tmp_path):
     records = [
         {"step": 100, "target/coworld/align_kl": 2.0, "target/coworld/maxmin_active": 0.5,
-         "target/coworld/target_value": 4.0, "target/coworld/source_value": 3.0},
+         "target/coworld/target_value": 4.0, "target/coworld/source_value": 3.0,
+         "target/coworld/binds_zeta_2": 0.6, "target/coworld/binds_zeta_3": 0.7, "target/coworld/binds_zeta_5": 0.8,
+         "target/coworld/binds_zeta_10": 0.9},
         {"step": 50, "unit": "source_env_step", "source/coworld/relabel_reward_loss": 0.8},
         {"step": 200, "target/coworld/align_kl": 0.5, "target/coworld/maxmin_active": 0.1,
-         "target/coworld/target_value": 2.0, "target/coworld/source_value": 5.0},
+         "target/coworld/target_value": 2.0, "target/coworld/source_value": 5.0,
+         "target/coworld/binds_zeta_2": 0.2, "target/coworld/binds_zeta_3": 0.3, "target/coworld/binds_zeta_5": 0.4,
+         "target/coworld/binds_zeta_10": 0.5},
         {"step": 90, "unit": "source_env_step", "source/coworld/relabel_reward_loss": 0.2},
         {"step": 300, "target/coworld/align_kl": float("nan")},  # a non-finite log is not a value
     ]  # fmt: skip
@@ -317,8 +321,9 @@ def test_coworld_diagnostics_summarise_each_term_from_the_logs(tmp_path):
     table = diagnostics_table(load_results(tmp_path)).splitlines()
     assert len(table) == 2 + 2  # header, rule, the two CoWorld runs; not the DreamerV2 run
     pair = "| toy_reach->toy_reach_shifted coworld"
-    assert table[2] == f"{pair} | 3 | 2 → 0.5 | 0.8 → 0.2 | 30.0% (10.0%) | 3 (2) | 4 (5) |"
-    assert table[3] == f"{pair} | 4 | 1 → 1 | – | – | – | – |"
+    probes = "40.0% / 50.0% / 60.0% / 70.0%"  # where the term would bind at zeta 2, 3, 5, 10: the run's mean
+    assert table[2] == f"{pair} | 3 | 2 → 0.5 | 0.8 → 0.2 | 30.0% (10.0%) | {probes} | 3 (2) | 4 (5) |"
+    assert table[3] == f"{pair} | 4 | 1 → 1 | – | – | – / – / – / – | – | – |"
     assert load_result(on).algo == "coworld"
     out = CliRunner().invoke(main, ["report", str(tmp_path)])
     assert out.exit_code == 0, out.output

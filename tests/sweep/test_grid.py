@@ -329,8 +329,10 @@ def test_the_later_papers_dmc_tables_are_its_six_pairs_on_two_dataset_qualities(
         assert (spec.seeds, spec.eval_episodes, spec.preset) == ((0, 1, 2), 10, "paper")
         assert (spec.data.policy, spec.data.quality) == ("dreamerv2", quality)
         cw = make_config(spec.preset, list(spec.overrides)).coworld
-        # Table 8's DMC column: beta2 1.5, its k 0.9 on the true reward (our k weighs the prediction), alpha 1
-        assert (cw.beta2, cw.k, cw.alpha, cw.target_updates, cw.source_updates) == (1.5, 0.1, 1.0, 20_000, 20_000)
+        # Table 8's DMC column (+later-dmc: its k 0.9 in its form of Eq. 4, eta from 1 to 0.1), 2e4 updates each
+        assert (cw.beta2, cw.k, cw.relabel, cw.alpha, cw.zeta) == (1.5, 0.9, "later", 1.0, 1.0)
+        assert (cw.reward_mix, cw.eta_start, cw.eta_end, cw.align_on) == ("eta", 1.0, 0.1, "embedding")
+        assert (cw.target_updates, cw.source_updates) == (20_000, 20_000)
 
 
 def test_the_robodesk_table_is_figure_4s_pairs_across_action_sizes():
@@ -348,7 +350,8 @@ def test_the_robodesk_table_is_figure_4s_pairs_across_action_sizes():
     assert list(spec.algos) == ["coworld", "dreamerv2-penalty", "dreamerv2"]  # the fine-tunings need one size
     spec.check()
     cw = make_config(spec.preset, list(spec.overrides)).coworld
-    assert (cw.beta2, cw.k, cw.alpha) == (1.0, 0.7, 2.0)  # Table 8's Meta-World / RoboDesk column
+    # Table 8's Meta-World / RoboDesk column (+later-metaworld)
+    assert (cw.beta2, cw.k, cw.relabel, cw.alpha, cw.reward_mix) == (1.0, 0.3, "later", 2.0, "eta")
     assert {target for target, _ in paper.META_WORLD_TO_ROBODESK.cells} <= {t for _, t in spec.pairs}
     assert all(target in envs.TASKS for _, target in spec.pairs) and "robodesk" in TABLES
 
@@ -360,3 +363,33 @@ def test_an_unknown_table_is_one_line_naming_the_tables(tmp_path):
     grid.write_text('table = "nope"\n')
     with pytest.raises(CoworldError, match="unknown table 'nope'"):
         build_spec(**read_grid_file(grid))
+
+
+def test_the_cap_study_runs_each_arm_on_dmc_cpus_cheetah_pair() -> None:
+    """Issue 61's study: ``dmc-cpu``'s cheetah pair, its schedule and dataset, with CoWorld at zeta 1, 3, 10, with the
+    later paper's DMC settings and with the target-policy cap, CoWorld and offline DreamerV2 at 4x the target updates,
+    and V-D4RL's penalised DreamerV2; 3 seeds each."""
+    spec = named_table("cap-study").check()
+    dmc = named_table("dmc-cpu")
+    assert spec.pairs == (("cheetah_run", "cheetah_uphill"),)
+    assert (spec.preset, spec.data, spec.eval_episodes, spec.seeds) == ("cpu", dmc.data, 10, (0, 1, 2))
+    assert set(dmc.overrides) <= set(spec.overrides)
+    arms = {(run.algo, run.variant) for run in spec.runs()}
+    coworld = {"", "zeta3", "zeta10", "later-dmc", "target-policy", "4x"}
+    assert arms == {("coworld", v) for v in coworld} | {
+        ("dreamerv2", ""),
+        ("dreamerv2", "4x"),
+        ("dreamerv2-penalty", ""),
+    }
+    assert len(spec.runs()) == 3 * len(arms)
+
+    def config(algo: str, variant: str):
+        run = next(r for r in spec.runs() if (r.algo, r.variant) == (algo, variant))
+        return make_config(spec.preset, spec.run_overrides(run))
+
+    assert config("coworld", "").coworld.zeta == 1.0 and config("coworld", "zeta10").coworld.zeta == 10.0
+    assert config("coworld", "later-dmc").coworld == make_config("cpu+later-dmc", dmc.overrides).coworld
+    assert config("coworld", "target-policy").coworld.cap_critic == "target_policy"
+    for algo in ("coworld", "dreamerv2"):  # 4x the target updates, the rest as dmc-cpu
+        assert config(algo, "4x").coworld.target_updates == 4 * config(algo, "").coworld.target_updates
+    assert config("dreamerv2-penalty", "").penalty.model_updates == 2_500  # a quarter of its 10,000 updates
