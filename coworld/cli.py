@@ -8,7 +8,10 @@ SIGTERM stop a command with one line and exit code 130 / 143 (:mod:`coworld.inte
 
 from __future__ import annotations
 
+import atexit
 import importlib
+import os
+import signal
 import sys
 from typing import Any
 
@@ -84,11 +87,27 @@ def main() -> None:
     """
 
 
+STOP_CODES = (128 + signal.SIGINT, 128 + signal.SIGTERM)
+
+
 def run() -> None:
     """The ``coworld`` command: :func:`main` in a process with tcmalloc preloaded where it is installed (the
-    command starts over with it; :mod:`coworld.allocator`), else with glibc's malloc tuned."""
+    command starts over with it; :mod:`coworld.allocator`), else with glibc's malloc tuned.
+
+    A command stopped by a signal has written and closed all it keeps by the time :func:`main` exits; the process
+    then runs the exit functions Python registered and ends without the rest of the teardown, in which native thread
+    pools that torch started for an update on another thread (``train.background_updates``) can abort it after its
+    one line ("terminate called ...")."""
     allocator.exec_with_tcmalloc()
-    main()
+    try:
+        main()
+    except SystemExit as done:
+        if done.code not in STOP_CODES:
+            raise
+        atexit._run_exitfuncs()  # what Python runs at exit (multiprocessing's clean-up among them), not C++'s
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(done.code)
 
 
 if __name__ == "__main__":  # `python -m coworld.cli ...`, as the benchmarks run a checkout without installing it
