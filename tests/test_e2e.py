@@ -116,6 +116,7 @@ def test_offline_dreamerv2_baseline(toy_dataset, tmp_path):
     assert results[0]["value_estimate"] == results[1]["value_estimate"]
 
 
+@pytest.mark.slow  # tests/test_kill.py kills training in CI
 def test_kill_during_training_resumes(toy_dataset, tmp_path):
     run = tmp_path / "run"
     args = [*CLI, *train_args(run, toy_dataset, *FAST, *SCHEDULE, "--set", "coworld.target_updates=30")]
@@ -152,7 +153,7 @@ def test_walker_quickstart_pipeline(tmp_path):
     assert "walker_uphill: return" in proc.stdout
 
 
-@pytest.mark.parametrize("algo", ["curl", "curl-cql"])
+@pytest.mark.parametrize("algo", [pytest.param("curl", marks=pytest.mark.slow), "curl-cql"])
 def test_model_free_baselines_train_and_eval(toy_dataset, tmp_path, algo):
     run = tmp_path / algo
     sets = ["--set", "curl.updates=20", "--set", "curl.eval_every=20", "--set", "curl.checkpoint_every=10"]
@@ -167,6 +168,7 @@ def test_model_free_baselines_train_and_eval(toy_dataset, tmp_path, algo):
     assert "toy_reach_shifted: return" in proc.stdout
 
 
+@pytest.mark.slow  # tests/test_interrupt.py and tests/test_storage.py stop collectors in CI
 def test_kill_during_collect_then_resume(tmp_path):
     out = tmp_path / "toy.h5"
     args = [*CLI, *collect_args(out, "toy_reach", "--max-steps", "600", *FAST, "--set", "train.checkpoint_every=50")]

@@ -106,7 +106,7 @@ COWORLD = (
 @pytest.mark.parametrize(
     ("algo", "kills"),
     [
-        pytest.param("curl", 2, id="curl-2-kills"),
+        pytest.param("curl", 2, id="curl-2-kills", marks=pytest.mark.slow),
         pytest.param("drq-bc", 2, id="drq-bc-2-kills"),
         pytest.param("dreamerv2-penalty", 3, id="dreamerv2-penalty-3-kills", marks=pytest.mark.slow),
         pytest.param("dreamerv2-finetune", 3, id="dreamerv2-finetune-3-kills", marks=pytest.mark.slow),

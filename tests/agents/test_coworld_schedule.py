@@ -182,7 +182,11 @@ PRETRAINING = [
 ]
 
 
-@pytest.mark.parametrize("stop_at", [70, 160], ids=["before-its-first-checkpoint", "after-a-checkpoint"])
+@pytest.mark.parametrize(
+    "stop_at",
+    [70, pytest.param(160, marks=pytest.mark.slow)],
+    ids=["before-its-first-checkpoint", "after-a-checkpoint"],
+)
 def test_a_run_stopped_while_it_pretrains_ends_with_an_uninterrupted_runs_counts(
     stop_at: int, tmp_path: Path, toy_dataset_writer, coworld_toy_job, monkeypatch: pytest.MonkeyPatch
 ) -> None:

@@ -364,6 +364,7 @@ def test_make_sampler_memory_check_and_rebuilding(
     assert all(np.array_equal(first[key], again[key]) for key in first)
 
 
+@pytest.mark.slow  # the model-free learning test in CI is DrQ+BC's
 def test_curl_cql_learns_toy_reach_offline(tmp_path: Path, toy_expert: types.ModuleType) -> None:
     """Tiny CURL+CQL, 400 updates on 30 noisy-expert episodes, beats a uniform random policy by a wide margin."""
     path = tmp_path / "toy_reach-expert.h5"

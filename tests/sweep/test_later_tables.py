@@ -88,6 +88,7 @@ def assert_side_by_side(text: str, table: paper.PaperTable, pair: tuple[str, str
         assert theirs == f"{number.mean:.0f} ± {number.std:.0f}" and cells[5] == number.where
 
 
+@pytest.mark.slow  # the medium-replay tables' tests run in CI
 def test_dmc_medium_expert_table_fast_representative(tmp_path):
     """One algorithm of Table 9 on one pair: its medium-expert dataset, its run, the report's row."""
     table, pair, algos = paper.DMC_MEDIUM_EXPERT, ("walker_walk", "walker_downhill"), ["dreamerv2-penalty"]

@@ -162,6 +162,7 @@ def test_ray_runs_jobs_as_tasks_and_skips_those_whose_dataset_failed(tmp_path, l
     assert log_b.index("coworld tasks") < log_b.index("coworld --version") and "done in" in log_b
 
 
+@pytest.mark.slow  # test_ray_runs_jobs_as_tasks_... runs the Ray path in CI
 def test_the_same_sweep_through_ray_gives_the_local_results(tmp_path, local_ray):
     spec = build_spec(**read_grid_file(grid(tmp_path, ["curl", "dreamerv2"], 1)))
     local = run_sweep(spec, tmp_path / "local", Execution(jobs=2, device="cpu", progress=False))
