@@ -78,7 +78,6 @@ def _reads_the_dot(tmp_path, seed: int) -> float:
 
 
 # 9-14 minutes beside 3-4 other jobs (benchmarks/archive/speed-work-notes.md, "The actor collapse, fourth pass")
-@pytest.mark.slow  # the tiny preset's learning test above runs in CI
 @pytest.mark.timeout(1800)
 def test_cpu_preset_reads_the_dot_on_toy_reach(tmp_path):
     """CI's perception test: the ``cpu`` preset's DreamerV2, 3,000 env steps online on toy_reach, scores what no
