@@ -53,6 +53,11 @@ _HELPERS = _load(Path(__file__).parent / "data" / "helpers.py", "coworld_data_te
 _PROCESSES = _load(Path(__file__).with_name("processes.py"), "coworld_test_processes")
 
 
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Tests marked ``long`` run first: a worker that picks one up late would run it alone while the others wait."""
+    items.sort(key=lambda item: item.get_closest_marker("long") is None)
+
+
 @pytest.fixture(scope="session")
 def helpers() -> ModuleType:
     """tests/data/helpers.py: episode makers, the step-space oracle, the fake pixel task."""

@@ -17,6 +17,7 @@ import copy
 import dataclasses
 
 import numpy as np
+import pytest
 import torch
 
 from coworld.agents.coworld import CoWorld
@@ -25,6 +26,7 @@ from coworld.data import open_dataset
 from coworld.training.evaluate import evaluate
 
 
+@pytest.mark.long
 def test_max_min_term_pulls_the_target_critic_down_to_a_lower_source_critic(toy_dataset_writer, tmp_path):
     torch.manual_seed(0)
     config = make_config(

@@ -56,6 +56,7 @@ def wait_for(condition, proc: subprocess.Popen, timeout: float = 600) -> None:
         time.sleep(0.1)
 
 
+@pytest.mark.long
 def test_kill9_in_the_middle_then_the_same_command_finishes_without_redoing(tmp_path, process_gone):
     root = tmp_path / "sweep"
     args = sweep_args(grid(tmp_path, ["curl"], 3), root, "--jobs", "1")

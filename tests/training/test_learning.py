@@ -52,6 +52,7 @@ def _learn_online(tmp_path, config, max_steps: int) -> tuple[DreamerV2, int]:
     return agent, result.updates
 
 
+@pytest.mark.long
 def test_tiny_dreamerv2_learns_toy_reach(tmp_path):
     config = make_config(
         "tiny",
@@ -78,6 +79,7 @@ def _reads_the_dot(tmp_path, seed: int) -> float:
 
 
 # 9-14 minutes beside 3-4 other jobs (benchmarks/archive/speed-work-notes.md, "The actor collapse, fourth pass")
+@pytest.mark.long
 @pytest.mark.timeout(1800)
 def test_cpu_preset_reads_the_dot_on_toy_reach(tmp_path):
     """CI's perception test: the ``cpu`` preset's DreamerV2, 3,000 env steps online on toy_reach, scores what no

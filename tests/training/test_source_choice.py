@@ -239,6 +239,7 @@ def test_a_list_of_sources_for_an_algorithm_without_a_source_is_one_note(tmp_pat
 CLI = [sys.executable, "-c", "from coworld.cli import run; run()"]
 
 
+@pytest.mark.long
 def test_the_command_killed_inside_the_second_candidate_resumes_and_keeps_the_first_ones_distance(
     tmp_path: Path, toy_dataset_writer
 ) -> None:
