@@ -444,6 +444,18 @@ def test_what_the_readme_writes_in_the_checkout_is_ignored_by_git() -> None:
     assert [str(path) for path in inside if not ignored(path)] == []
 
 
+COMMITTED_REPORTS = sorted((ROOT / "benchmarks" / "results").glob("*/re[ps]*[dv]"))  # report.md and results.csv
+ABSOLUTE_PATH = re.compile(r"(?<![\w.])/(?:work|home|tmp|root|mnt|Users)/")
+
+
+def test_committed_reports_name_no_folder_of_the_machine_that_made_them() -> None:
+    """A report under benchmarks/results names its runs relative to its sweep (`coworld report SWEEP` writes them
+    so), never by a path of the machine the sweep ran on."""
+    assert {path.name for path in COMMITTED_REPORTS} == {"report.md", "results.csv"}
+    named = [f"{path.relative_to(ROOT)}: {line}" for path in COMMITTED_REPORTS for line in path.read_text().split("\n")]
+    assert [line for line in named if ABSOLUTE_PATH.search(line)] == []
+
+
 @pytest.mark.parametrize("page", DOCS, ids=_name)
 def test_every_training_example_names_its_preset(page: Path) -> None:
     """The default preset is paper, a GPU's: every example that trains (train, collect with DreamerV2, sweep) says
