@@ -4,7 +4,7 @@
 
 * ``results.csv`` -- one row per run (:mod:`coworld.report.results`);
 * ``report.md`` -- the Table-1-style table with the aggregate row, ours beside the later CoWorld paper's published
-  numbers (:mod:`coworld.report.paper`), the ablation and value-check tables, CoWorld's own diagnostics
+  numbers (:mod:`coworld.report.paper`), the variants and value-check tables, CoWorld's own diagnostics
   (:mod:`coworld.report.diagnostics`), the figures, and which runs are not finished (:mod:`coworld.report.tables`);
 * ``curves-<target>.png``, ``value_check.png``, ``ablation.png`` (:mod:`coworld.report.plots`).
 
@@ -77,7 +77,7 @@ def write_report(root: str | Path, out: str | Path | None = None) -> Report:
     if plots.value_check(results, out / "value_check.png"):
         figures.append(("Value check (Figure 4(b))", "value_check.png"))
     if plots.ablation_bars(results, out / "ablation.png"):
-        figures.append(("Ablation (Figure 4(a))", "ablation.png"))
+        figures.append(("CoWorld's variants (Figure 4(a))", "ablation.png"))
     files += [out / name for _, name in figures]
 
     md_path = out / "report.md"
@@ -118,9 +118,17 @@ def _markdown(
             published,
             "",
         ]
-    ablation = tables.results_table(results, variants=True)
-    if ablation and len({r.variant for r in results if r.algo == "coworld"}) > 1:
-        lines += ["## Ablation (CoWorld terms switched off)", "", ablation, ""]
+    varied = tables.results_table(results, variants=True)
+    if varied:
+        lines += [
+            "## Variants",
+            "",
+            "Each algorithm that has variants beside its runs as configured: the settings a sweep's variant names (the"
+            " ablation's `no-*` switch one of CoWorld's terms off, Figure 4(a)).",
+            "",
+            varied,
+            "",
+        ]
     from coworld.report.choice import choice_lines
 
     choices = choice_lines(results, skipped, out)

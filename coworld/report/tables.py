@@ -130,16 +130,21 @@ def results_table(results: Sequence[RunResult], *, variants: bool = False) -> st
     """Rows = pairs (by target), columns = algorithms: mean ± std of the final return over seeds, best in bold.
 
     Only finished runs (with eval.json) count. ``variants=False`` takes the algorithms as configured (variant '')
-    and adds the IQM aggregate row; ``variants=True`` gives the ablation: CoWorld's variants as columns.
+    and adds the IQM aggregate row; ``variants=True`` gives each algorithm that has variants (an ablation's CoWorld
+    with a term off, a study's other settings) beside its runs as configured, one column per variant.
     """
     finished = [r for r in results if r.final_return is not None]
     if variants:
-        chosen = [r for r in finished if r.algo == "coworld"]
-        columns = [""] + sorted({r.variant for r in chosen} - {""})
-        column_of = {c: (f"coworld ({c})" if c else "coworld") for c in columns}
+        varied = {r.algo for r in finished if r.variant}
+        chosen = [r for r in finished if r.algo in varied]
+        columns = []
+        for algo in _order(varied):
+            names = sorted({r.variant for r in chosen if r.algo == algo})  # as configured ('') first
+            columns += [f"{algo} ({name})" if name else algo for name in names]
+        column_of = {c: c for c in columns}
 
         def key(r: RunResult) -> str:
-            return r.variant
+            return r.label
 
     else:
         chosen = [r for r in finished if not r.variant]

@@ -234,7 +234,25 @@ def test_ablation_from_plain_runs_and_from_sweep_records(tmp_path, score_scale):
     ]
     write_report(tmp_path)
     assert (tmp_path / "ablation.png").read_bytes()[:4] == b"\x89PNG"
-    assert "## Ablation" in (tmp_path / "report.md").read_text()
+    assert "## Variants" in (tmp_path / "report.md").read_text()
+
+
+def test_the_variants_table_holds_every_algorithms_variants(tmp_path):
+    """A study's variants of another algorithm than CoWorld (offline DreamerV2 with 4x the updates) have their
+    column beside it; the main table keeps the algorithms as configured."""
+    target = "toy_reach_shifted"
+    for seed in (0, 1):
+        make_run(tmp_path, f"cw{seed}", algo="coworld", source="toy_reach", target=target, seed=seed, returns=[30.0])
+        make_run(tmp_path, f"cw4x{seed}", algo="coworld", source="toy_reach", target=target, seed=seed,
+                 returns=[40.0 + seed], variant="4x")  # fmt: skip
+        make_run(tmp_path, f"dv{seed}", algo="dreamerv2", target=target, seed=seed, returns=[20.0])
+        make_run(tmp_path, f"dv4x{seed}", algo="dreamerv2", target=target, seed=seed, returns=[10.0], variant="4x")
+        make_run(tmp_path, f"pen{seed}", algo="dreamerv2-penalty", target=target, seed=seed, returns=[5.0])
+    results = load_results(tmp_path)
+    table = results_table(results, variants=True).splitlines()
+    assert table[0] == "| pair | dreamerv2 | dreamerv2 (4x) | coworld | coworld (4x) |"  # the main table's order
+    assert table[2] == "| toy_reach → toy_reach_shifted | 20.0 ± 0.0 | 10.0 ± 0.0 | 30.0 ± 0.0 | **40.5 ± 0.5** |"
+    assert results_table(results).splitlines()[0] == "| pair | dreamerv2 | dreamerv2-penalty | coworld |"
 
 
 def test_run_folders_are_found_by_their_run_json(tmp_path):
