@@ -137,31 +137,19 @@ def results_table(results: Sequence[RunResult], *, variants: bool = False) -> st
     if variants:
         varied = {r.algo for r in finished if r.variant}
         chosen = [r for r in finished if r.algo in varied]
-        columns = []
-        for algo in _order(varied):
-            names = sorted({r.variant for r in chosen if r.algo == algo})  # as configured ('') first
-            columns += [f"{algo} ({name})" if name else algo for name in names]
-        column_of = {c: c for c in columns}
-
-        def key(r: RunResult) -> str:
-            return r.label
-
+        # an algorithm's label sorts before its variants' ("coworld" < "coworld (4x)")
+        columns = [label for algo in _order(varied) for label in sorted({r.label for r in chosen if r.algo == algo})]
     else:
-        chosen = [r for r in finished if not r.variant]
+        chosen = [r for r in finished if not r.variant]  # their label is the algorithm's name
         columns = _order({r.algo for r in chosen})
-        column_of = {c: c for c in columns}
-
-        def key(r: RunResult) -> str:
-            return r.algo
-
     if not chosen:
         return ""
     cells: dict[tuple[str, str], list[float]] = {}
     for r in chosen:
-        cells.setdefault((r.target, key(r)), []).append(float(r.final_return))  # type: ignore[arg-type]
+        cells.setdefault((r.target, r.label), []).append(float(r.final_return))  # type: ignore[arg-type]
     seeds = max(len(v) for v in cells.values())
     lines = [
-        "| pair | " + " | ".join(column_of[c] for c in columns) + " |",
+        "| pair | " + " | ".join(columns) + " |",
         "|---|" + "---:|" * len(columns),
     ]
     for target in _rows(chosen):
