@@ -96,7 +96,13 @@ class Algorithm1:
         )
         learner, source = SourceLearner(self.agent), str(job.source)
         self.source = make_source_trainer(
-            learner, source, config=self.config, logdir=job.logdir, writer=writer, logger=logger
+            learner,
+            source,
+            config=self.config,
+            logdir=job.logdir,
+            writer=writer,
+            logger=logger,
+            checkpoint_extra=self.policy_value_state,
         )
         self.state = Progress()
         self.checkpoint_path = Path(job.logdir) / CHECKPOINT_NAME
@@ -205,15 +211,23 @@ class Algorithm1:
                 "source_act_rng": self.source.act_rng.get_state(),
                 "progress": dataclasses.asdict(self.state),
                 "rng": rng_state(),
-                **({} if self.agent.policy_value is None else {"policy_value": self.agent.policy_value.state_dict()}),
+                **self.policy_value_state(),
             },
         )
 
+    def policy_value_state(self) -> dict[str, Any]:
+        """The target-policy critic's entry of a checkpoint, where the run has one: it learns from the first source
+        update, so the source agent's pretraining checkpoints hold it too."""
+        return {} if self.agent.policy_value is None else {"policy_value": self.agent.policy_value.state_dict()}
+
     def restore(self, warm_target: Path | None) -> None:
         """Continue from the run folder: the combined checkpoint once past pretraining, else the source's
-        pretraining checkpoint (with a chosen source's warmed-up target agent where the choice made one)."""
-        self.source.restore(rollback=not self.checkpoint_path.exists())
+        pretraining checkpoint (with the target-policy critic it holds, and a chosen source's warmed-up target agent
+        where the choice made one)."""
+        source_state = self.source.restore(rollback=not self.checkpoint_path.exists())
         if not self.checkpoint_path.exists():
+            if self.agent.policy_value is not None and source_state is not None and "policy_value" in source_state:
+                self.agent.policy_value.load_state_dict(source_state["policy_value"])
             if warm_target is not None:
                 restore_warm_target(self.agent, warm_target, self.agent.device)
             return

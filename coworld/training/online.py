@@ -144,7 +144,8 @@ class OnlineTrainer:
         logdir: run folder for the checkpoint and logs.
         writer: open dataset writer receiving every finished episode; its rows are the step count.
         logger: where metrics go.
-        checkpoint_extra: callable returning more entries to save in the checkpoint (CoWorld's target agent).
+        checkpoint_extra: callable returning more entries to save in the checkpoint (CoWorld's target-policy critic,
+            which learns beside the source agent while it pretrains).
     """
 
     def __init__(
@@ -502,10 +503,17 @@ def source_replay_writer(logdir: str | Path, source: str, *, algorithm: str, see
 
 
 def make_source_trainer(
-    agent: Any, source: str, *, config: Config, logdir: str | Path, writer: DatasetWriter, logger: Logger
+    agent: Any,
+    source: str,
+    *,
+    config: Config,
+    logdir: str | Path,
+    writer: DatasetWriter,
+    logger: Logger,
+    checkpoint_extra: Callable[[], dict[str, Any]] | None = None,
 ) -> OnlineTrainer:
     """The online trainer of a two-phase run's source agent (CoWorld's, a fine-tuned DreamerV2's): its checkpoint
-    in ``<logdir>/source``, its metrics and step unit marked ``source``."""
+    in ``<logdir>/source`` (with ``checkpoint_extra()``'s entries), its metrics and step unit marked ``source``."""
     return OnlineTrainer(
         agent=agent,
         task=source,
@@ -513,6 +521,7 @@ def make_source_trainer(
         logdir=Path(logdir) / "source",
         writer=writer,
         logger=logger,
+        checkpoint_extra=checkpoint_extra,
         metric_prefix="source/",
         step_unit_prefix="source_",
     )

@@ -135,7 +135,9 @@ def test_eq5_with_eta_weighs_the_source_and_target_reward_terms_at_the_reward_sc
             label = on_pred * pred + (1.0 - on_pred) * prepared["reward"]
             target_term = (0.5 * (pred - label).square()).mean()
             source_term = (0.5 * (aux["reward_head"].mean - batch_t["reward"]).square()).mean()
-            seen.update(terms={k: v.detach() for k, v in terms.items()}, target=target_term, source=source_term)
+            seen.update(
+                terms={k: v.detach() for k, v in terms.items()}, target=target_term, source=source_term.detach()
+            )
             return terms
 
         return original(batch, recording)

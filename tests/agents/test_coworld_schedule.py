@@ -183,22 +183,29 @@ PRETRAINING = [
 
 
 @pytest.mark.parametrize(
-    "stop_at",
-    [70, pytest.param(160, marks=pytest.mark.slow)],
-    ids=["before-its-first-checkpoint", "after-a-checkpoint"],
+    ("stop_at", "cap_critic"),
+    [(70, "source"), pytest.param(160, "source", marks=pytest.mark.slow), (160, "target_policy")],
+    ids=["before-its-first-checkpoint", "after-a-checkpoint", "target-policy-cap-after-a-checkpoint"],
 )
 def test_a_run_stopped_while_it_pretrains_ends_with_an_uninterrupted_runs_counts(
-    stop_at: int, tmp_path: Path, toy_dataset_writer, coworld_toy_job, monkeypatch: pytest.MonkeyPatch
+    stop_at: int,
+    cap_critic: str,
+    tmp_path: Path,
+    toy_dataset_writer,
+    coworld_toy_job,
+    monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     """Stopped while its source agent pretrains (Ctrl-C, SIGTERM, a kill, a full disk), the rerun continues from the
     last source checkpoint with the source replay cut back to what that checkpoint had seen, so it ends with the
-    source updates and steps an uninterrupted run ends with; stopped before the first checkpoint it starts the
-    pretraining over, and trains the very weights an uninterrupted run trains."""
+    source updates and steps an uninterrupted run ends with, and the target-policy critic (which learns beside the
+    source agent) with its updates; stopped before the first checkpoint it starts the pretraining over, and trains
+    the very weights an uninterrupted run trains."""
+    overrides = [*PRETRAINING, f"coworld.cap_critic={cap_critic}"]
     dataset = toy_dataset_writer(tmp_path / "target.h5", "toy_reach_shifted", episodes=3)
-    run_job(coworld_toy_job(dataset, tmp_path / "whole", PRETRAINING), progress=False)
+    run_job(coworld_toy_job(dataset, tmp_path / "whole", overrides), progress=False)
     whole = torch.load(tmp_path / "whole" / "checkpoint.pt", weights_only=True)
 
-    job = coworld_toy_job(dataset, tmp_path / "run", PRETRAINING)
+    job = coworld_toy_job(dataset, tmp_path / "run", overrides)
     original_due = OnlineTrainer._train_due
 
     def stopping(self):
@@ -224,3 +231,5 @@ def test_a_run_stopped_while_it_pretrains_ends_with_an_uninterrupted_runs_counts
         assert a.num_steps == b.num_steps
     if stop_at < 100:  # started over: the very weights (from a checkpoint, the counts)
         _assert_same_tensors(whole["source"], resumed["source"])
+    if cap_critic == "target_policy":
+        assert int(resumed["policy_value"]["updates"]) == int(whole["policy_value"]["updates"]) > 0
