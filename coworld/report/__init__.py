@@ -104,8 +104,14 @@ def _markdown(
         " stratified-bootstrap confidence interval.",
         "",
     ]
-    main = tables.results_table(results)
-    lines += ["## Results", "", main or "No finished runs yet.", ""]
+    main, varied = tables.results_table(results), tables.results_table(results, variants=True)
+    if not main:
+        main = (
+            "No run as configured has finished yet; the finished variants are below."
+            if varied
+            else "No finished runs yet."
+        )
+    lines += ["## Results", "", main, ""]
     published = tables.paper_table(results)
     if published:
         lines += [
@@ -118,7 +124,6 @@ def _markdown(
             published,
             "",
         ]
-    varied = tables.results_table(results, variants=True)
     if varied:
         lines += [
             "## Variants",

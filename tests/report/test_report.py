@@ -255,6 +255,21 @@ def test_the_variants_table_holds_every_algorithms_variants(tmp_path):
     assert results_table(results).splitlines()[0] == "| pair | dreamerv2 | dreamerv2-penalty | coworld |"
 
 
+def test_a_report_whose_finished_runs_are_all_variants_says_so_above_their_table(tmp_path):
+    """A study part-way through (one variant finished, the run as configured still training) says that no run as
+    configured has finished, not that none has."""
+    target = "toy_reach_shifted"
+    make_run(tmp_path, "cw", algo="coworld", source="toy_reach", target=target, seed=0, returns=None)
+    make_run(tmp_path, "cw3", algo="coworld", source="toy_reach", target=target, seed=0, returns=[12.0],
+             variant="zeta3")  # fmt: skip
+    out = CliRunner().invoke(main, ["report", str(tmp_path), "--out", str(tmp_path / "out")])
+    assert out.exit_code == 0, out.output
+    text = (tmp_path / "out" / "report.md").read_text()
+    results = text.split("## Results", 1)[1].split("##", 1)[0]
+    assert "No run as configured has finished yet" in results and "No finished runs yet" not in text
+    assert "## Variants" in text and "| toy_reach → toy_reach_shifted | 12.0 (n=1) |" in text
+
+
 def test_run_folders_are_found_by_their_run_json(tmp_path):
     make_run(tmp_path / "a", "r1", algo="curl", target="toy_reach", seed=0, returns=[1.0])
     collector = tmp_path / "datasets" / "toy_reach-medium_replay.run"  # the online dreamerv2 run of a collection
