@@ -18,7 +18,7 @@ import numpy as np
 
 from coworld.errors import CoworldError
 from coworld.report.results import ONLINE_ALGO, RunResult, learning_curve, read_run_metrics, wall_clock_curve
-from coworld.report.tables import ALGO_ORDER
+from coworld.report.tables import label_order
 from coworld.text import count
 
 
@@ -33,12 +33,6 @@ def require_matplotlib() -> Any:
 
 def _figure(width: float, height: float) -> Any:
     return require_matplotlib()(figsize=(width, height), layout="constrained")
-
-
-def _labels(results: Sequence[RunResult]) -> list[str]:
-    labels = {r.label for r in results}
-    known = [a for a in ALGO_ORDER if a in labels]
-    return known + sorted(labels - set(known))
 
 
 def mean_band(curves: Sequence[Sequence[tuple[int, float]]]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -71,7 +65,7 @@ def learning_curves(results: Sequence[RunResult], target: str, path: Path) -> bo
     fig = _figure(11.0, 4.0)
     by_updates, by_clock = fig.subplots(1, 2)
     drawn = False
-    for label in _labels(runs):
+    for label in label_order(runs):
         labelled = [r for r in runs if r.label == label]
         records = {r.run_dir: read_run_metrics(Path(r.run_dir)) for r in labelled}  # one read serves both axes
         curves = [c for c in (learning_curve(Path(r.run_dir), r.algo, records[r.run_dir]) for r in labelled) if c]
@@ -111,11 +105,12 @@ def value_check(results: Sequence[RunResult], path: Path) -> bool:
     targets = list(dict.fromkeys(r.target for r in measured))
     if not targets:
         return False
-    fig = _figure(max(4.0, 3.2 * len(targets)), 3.6)
-    axes = fig.subplots(1, len(targets), squeeze=False)[0]
+    widths = [1.2 + 0.7 * len(label_order(r for r in measured if r.target == target)) for target in targets]
+    fig = _figure(max(4.0, sum(widths)), 3.8)  # each subplot as wide as its three bars a run label need
+    axes = fig.subplots(1, len(targets), squeeze=False, gridspec_kw={"width_ratios": widths})[0]
     for ax, target in zip(axes, targets, strict=True):
         runs = [r for r in measured if r.target == target]
-        labels = _labels(runs)
+        labels = label_order(runs)
         x = np.arange(len(labels))
         estimate = [np.mean([r.value_estimate for r in runs if r.label == label]) for label in labels]
         true = [np.mean([r.value_true for r in runs if r.label == label]) for label in labels]
@@ -129,6 +124,7 @@ def value_check(results: Sequence[RunResult], path: Path) -> bool:
         ax.set_xticks(x, labels, rotation=30, ha="right", fontsize="small")
         ax.set_title(target, fontsize="small")
         ax.grid(axis="y", alpha=0.3)
+    axes[0].set_ylabel("value (mean over seeds)")
     axes[0].legend(fontsize="small")
     fig.savefig(path, dpi=120)
     return True

@@ -11,6 +11,7 @@ rliable's runs x tasks matrix it allows a different number of runs per task (a p
 
 from __future__ import annotations
 
+import re
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -100,6 +101,21 @@ def _order(labels: Iterable[str]) -> list[str]:
     return known + sorted(labels - set(known))
 
 
+def label_order(results: Iterable[RunResult]) -> list[str]:
+    """The runs' labels in the tables' order: the algorithms as :data:`ALGO_ORDER` lists them, each followed by its
+    variants in natural order (an algorithm's label first, then "coworld (zeta3)" before "coworld (zeta10)")."""
+    results = list(results)
+
+    def natural(label: str) -> list[Any]:
+        return [(0, int(part), "") if part.isdigit() else (1, 0, part) for part in re.split(r"(\d+)", label)]
+
+    return [
+        label
+        for algo in _order({r.algo for r in results})
+        for label in sorted({r.label for r in results if r.algo == algo}, key=natural)
+    ]
+
+
 def _rows(results: Sequence[RunResult]) -> list[str]:
     return list(dict.fromkeys(r.target for r in results))
 
@@ -137,8 +153,7 @@ def results_table(results: Sequence[RunResult], *, variants: bool = False) -> st
     if variants:
         varied = {r.algo for r in finished if r.variant}
         chosen = [r for r in finished if r.algo in varied]
-        # an algorithm's label sorts before its variants' ("coworld" < "coworld (4x)")
-        columns = [label for algo in _order(varied) for label in sorted({r.label for r in chosen if r.algo == algo})]
+        columns = label_order(chosen)
     else:
         chosen = [r for r in finished if not r.variant]  # their label is the algorithm's name
         columns = _order({r.algo for r in chosen})

@@ -20,7 +20,7 @@ from coworld.report import write_report
 from coworld.report.diagnostics import diagnostics_table, series
 from coworld.report.plots import curve_runs, mean_band
 from coworld.report.results import find_run_dirs, learning_curve, load_result, load_results, wall_clock_curve
-from coworld.report.tables import iqm_interval, results_table, value_table
+from coworld.report.tables import iqm_interval, label_order, results_table, value_table
 
 
 @pytest.fixture
@@ -253,6 +253,26 @@ def test_the_variants_table_holds_every_algorithms_variants(tmp_path):
     assert table[0] == "| pair | dreamerv2 | dreamerv2 (4x) | coworld | coworld (4x) |"  # the main table's order
     assert table[2] == "| toy_reach → toy_reach_shifted | 20.0 ± 0.0 | 10.0 ± 0.0 | 30.0 ± 0.0 | **40.5 ± 0.5** |"
     assert results_table(results).splitlines()[0] == "| pair | dreamerv2 | dreamerv2-penalty | coworld |"
+
+
+def test_runs_are_shown_by_algorithm_each_followed_by_its_variants_in_natural_order(tmp_path):
+    """The figures and the variants table put a study's arms beside their algorithm (offline DreamerV2 at 4x next to
+    it, not after every CoWorld arm) and zeta 3 before zeta 10."""
+    target = "toy_reach_shifted"
+    for variant in ("zeta10", None, "4x", "zeta3"):
+        make_run(tmp_path, f"cw-{variant}", algo="coworld", source="toy_reach", target=target, seed=0, returns=[1.0],
+                 variant=variant)  # fmt: skip
+    for algo, variant in (("dreamerv2", "4x"), ("dreamerv2-penalty", None), ("dreamerv2", None)):
+        make_run(tmp_path, f"{algo}-{variant}", algo=algo, target=target, seed=0, returns=[1.0], variant=variant)
+    assert label_order(load_results(tmp_path)) == [
+        "dreamerv2",
+        "dreamerv2 (4x)",
+        "dreamerv2-penalty",
+        "coworld",
+        "coworld (4x)",
+        "coworld (zeta3)",
+        "coworld (zeta10)",
+    ]
 
 
 def test_a_report_whose_finished_runs_are_all_variants_says_so_above_their_table(tmp_path):
