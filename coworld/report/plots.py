@@ -131,24 +131,29 @@ def value_check(results: Sequence[RunResult], path: Path) -> bool:
 
 
 def ablation_bars(results: Sequence[RunResult], path: Path) -> bool:
-    """Figure 4(a): final return (mean ± std over seeds) of each CoWorld variant, per pair."""
-    runs = [r for r in results if r.algo == "coworld" and r.final_return is not None]
+    """Figure 4(a): final return (mean ± std over seeds) of each CoWorld variant, per pair, with the other
+    algorithms as configured on the same target as dashed lines (their mean)."""
+    finished = [r for r in results if r.final_return is not None]
+    runs = [r for r in finished if r.algo == "coworld"]
     if len({r.variant for r in runs}) < 2:
         return False
     targets = list(dict.fromkeys(r.target for r in runs))
     fig = _figure(max(4.0, 3.6 * len(targets)), 3.6)
     axes = fig.subplots(1, len(targets), squeeze=False)[0]
     for ax, target in zip(axes, targets, strict=True):
-        variants = sorted({r.variant for r in runs if r.target == target}, key=lambda v: (v != "", v))
-        values = [[r.final_return for r in runs if r.target == target and r.variant == v] for v in variants]
-        ax.bar(
-            np.arange(len(variants)),
-            [np.mean(v) for v in values],
-            yerr=[np.std(v) for v in values],
-            capsize=4,
-            color=["C0"] + ["C7"] * (len(variants) - 1),
-        )
-        ax.set_xticks(np.arange(len(variants)), [v or "coworld" for v in variants], rotation=30, ha="right")
+        labels = label_order(r for r in runs if r.target == target)
+        values = [[r.final_return for r in runs if r.target == target and r.label == label] for label in labels]
+        x = np.arange(len(labels))
+        colors = ["C0" if label == "coworld" else "C7" for label in labels]
+        ax.bar(x, [np.mean(v) for v in values], yerr=[np.std(v) for v in values], capsize=4, color=colors)
+        others = [r for r in finished if r.target == target and r.algo != "coworld" and not r.variant]
+        for i, label in enumerate(label_order(others)):
+            mean = np.mean([r.final_return for r in others if r.label == label])
+            ax.axhline(mean, color=f"C{i + 1}", linestyle="--", linewidth=1, label=label)
+        if others:
+            ax.legend(fontsize="small")
+        ticks = [label.removeprefix("coworld (").removesuffix(")") for label in labels]
+        ax.set_xticks(x, ticks, rotation=30, ha="right")
         ax.set_ylabel("final return")
         ax.set_title(target, fontsize="small")
         ax.grid(axis="y", alpha=0.3)
