@@ -105,12 +105,13 @@ def value_check(results: Sequence[RunResult], path: Path) -> bool:
     targets = list(dict.fromkeys(r.target for r in measured))
     if not targets:
         return False
-    widths = [1.2 + 0.7 * len(label_order(r for r in measured if r.target == target)) for target in targets]
+    labels_of = {target: label_order(r for r in measured if r.target == target) for target in targets}
+    widths = [1.2 + 0.7 * len(labels_of[target]) for target in targets]
     fig = _figure(max(4.0, sum(widths)), 3.8)  # each subplot as wide as its three bars a run label need
     axes = fig.subplots(1, len(targets), squeeze=False, gridspec_kw={"width_ratios": widths})[0]
     for ax, target in zip(axes, targets, strict=True):
         runs = [r for r in measured if r.target == target]
-        labels = label_order(runs)
+        labels = labels_of[target]
         x = np.arange(len(labels))
         estimate = [np.mean([r.value_estimate for r in runs if r.label == label]) for label in labels]
         true = [np.mean([r.value_true for r in runs if r.label == label]) for label in labels]

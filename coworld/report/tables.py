@@ -153,10 +153,9 @@ def results_table(results: Sequence[RunResult], *, variants: bool = False) -> st
     if variants:
         varied = {r.algo for r in finished if r.variant}
         chosen = [r for r in finished if r.algo in varied]
-        columns = label_order(chosen)
     else:
         chosen = [r for r in finished if not r.variant]  # their label is the algorithm's name
-        columns = _order({r.algo for r in chosen})
+    columns = label_order(chosen)
     if not chosen:
         return ""
     cells: dict[tuple[str, str], list[float]] = {}
