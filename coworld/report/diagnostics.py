@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from coworld.report.results import RunResult, read_run_metrics
+from coworld.report.tables import label_order
 
 ALIGN = "target/coworld/align_kl"
 RELABEL = "source/coworld/relabel_reward_loss"
@@ -72,14 +73,16 @@ def _value(s: Series | None) -> str:
 
 def diagnostics_table(results: Sequence[RunResult]) -> str:
     """A markdown table, one row per CoWorld run; '' when there is none."""
-    runs = sorted((r for r in results if r.algo == "coworld"), key=lambda r: (r.pair, r.variant, r.seed))
+    coworld = [r for r in results if r.algo == "coworld"]
+    order = {label: i for i, label in enumerate(label_order(coworld))}
+    runs = sorted(coworld, key=lambda r: (r.pair, order[r.label], r.seed))
     if not runs:
         return ""
     lines = [
-        "| run | seed | alignment KL, first → last | relabelled reward loss, first → last"
+        "| pair | algorithm | seed | alignment KL, first → last | relabelled reward loss, first → last"
         " | max-min binds: run (last) | would bind at zeta 2 / 3 / 5 / 10 | target critic: run (last)"
         " | the cap's critic: run (last) |",
-        "|---|---:|---|---|---|---|---|---|",
+        "|---|---|---:|---|---|---|---|---|---|",
     ]
     for r in runs:
         records = read_run_metrics(Path(r.run_dir))
@@ -91,5 +94,5 @@ def diagnostics_table(results: Sequence[RunResult]) -> str:
             _value(series(records, TARGET_VALUE)),
             _value(series(records, SOURCE_VALUE)),
         ]
-        lines.append(f"| {r.pair} {r.label} | {r.seed} | " + " | ".join(cells) + " |")
+        lines.append(f"| {r.source} → {r.target} | {r.label} | {r.seed} | " + " | ".join(cells) + " |")
     return "\n".join(lines)

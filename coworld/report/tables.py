@@ -207,17 +207,15 @@ def value_table(results: Sequence[RunResult]) -> str:
     ]
     for target in _rows(measured):
         here = [r for r in measured if r.target == target]
-        for algo in _order({r.algo for r in here}):
-            for variant in sorted({r.variant for r in here if r.algo == algo}):  # the full method ('') first
-                runs = [r for r in here if r.algo == algo and r.variant == variant]
-                estimate = float(np.mean([r.value_estimate for r in runs]))
-                true = float(np.mean([r.value_true for r in runs]))
-                capping = [r.value_source for r in runs if r.value_source is not None]
-                cap = f"{np.mean(capping):.2f}" if capping else "–"
-                name = f"{algo} ({variant})" if variant else algo
-                lines.append(
-                    f"| {_pair_label(results, target)} | {name} | {estimate:.2f} | {true:.2f} | {cap} | {len(runs)} |"
-                )
+        for label in label_order(here):
+            runs = [r for r in here if r.label == label]
+            estimate = float(np.mean([r.value_estimate for r in runs]))
+            true = float(np.mean([r.value_true for r in runs]))
+            capping = [r.value_source for r in runs if r.value_source is not None]
+            cap = f"{np.mean(capping):.2f}" if capping else "–"
+            lines.append(
+                f"| {_pair_label(results, target)} | {label} | {estimate:.2f} | {true:.2f} | {cap} | {len(runs)} |"
+            )
     return "\n".join(lines)
 
 

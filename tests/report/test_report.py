@@ -256,15 +256,17 @@ def test_the_variants_table_holds_every_algorithms_variants(tmp_path):
 
 
 def test_runs_are_shown_by_algorithm_each_followed_by_its_variants_in_natural_order(tmp_path):
-    """The figures and the variants table put a study's arms beside their algorithm (offline DreamerV2 at 4x next to
-    it, not after every CoWorld arm) and zeta 3 before zeta 10."""
+    """The figures and every table put a study's arms beside their algorithm (offline DreamerV2 at 4x next to it,
+    not after every CoWorld arm) and zeta 3 before zeta 10."""
     target = "toy_reach_shifted"
     for variant in ("zeta10", None, "4x", "zeta3"):
         make_run(tmp_path, f"cw-{variant}", algo="coworld", source="toy_reach", target=target, seed=0, returns=[1.0],
-                 variant=variant)  # fmt: skip
+                 variant=variant, value=(1.0, 1.0), records=[{"step": 1}])  # fmt: skip
     for algo, variant in (("dreamerv2", "4x"), ("dreamerv2-penalty", None), ("dreamerv2", None)):
-        make_run(tmp_path, f"{algo}-{variant}", algo=algo, target=target, seed=0, returns=[1.0], variant=variant)
-    assert label_order(load_results(tmp_path)) == [
+        make_run(tmp_path, f"{algo}-{variant}", algo=algo, target=target, seed=0, returns=[1.0], variant=variant,
+                 value=(1.0, 1.0))  # fmt: skip
+    results = load_results(tmp_path)
+    order = [
         "dreamerv2",
         "dreamerv2 (4x)",
         "dreamerv2-penalty",
@@ -273,6 +275,9 @@ def test_runs_are_shown_by_algorithm_each_followed_by_its_variants_in_natural_or
         "coworld (zeta3)",
         "coworld (zeta10)",
     ]
+    assert label_order(results) == order
+    assert [row.split(" | ")[1] for row in value_table(results).splitlines()[2:]] == order
+    assert [row.split(" | ")[1] for row in diagnostics_table(results).splitlines()[2:]] == order[3:]
 
 
 def test_a_report_whose_finished_runs_are_all_variants_says_so_above_their_table(tmp_path):
@@ -373,7 +378,7 @@ def test_coworld_diagnostics_summarise_each_term_from_the_logs(tmp_path):
     assert series(records, "eval/return") is None
     table = diagnostics_table(load_results(tmp_path)).splitlines()
     assert len(table) == 2 + 2  # header, rule, the two CoWorld runs; not the DreamerV2 run
-    pair = "| toy_reach->toy_reach_shifted coworld"
+    pair = "| toy_reach → toy_reach_shifted | coworld"
     probes = "40.0% / 50.0% / 60.0% / 70.0%"  # where the term would bind at zeta 2, 3, 5, 10: the run's mean
     assert table[2] == f"{pair} | 3 | 2 → 0.5 | 0.8 → 0.2 | 30.0% (10.0%) | {probes} | 3 (2) | 4 (5) |"
     assert table[3] == f"{pair} | 4 | 1 → 1 | – | – | – / – / – / – | – | – |"
