@@ -69,6 +69,9 @@ class JobResult:
 def spawn(argv: list[str], log: IO[bytes], threads: int) -> subprocess.Popen:
     """Start ``argv``: its own process group, output to ``log``.
 
+    The group stays in this process's session: Linux's scheduler shares the CPU between sessions first
+    (autogroups), so a command in a session of its own would run at full share whatever ``nice`` the sweep runs at.
+
     The child learns this process's PID (:data:`~coworld.sweep.child.PARENT_ENV`); a child that calls
     :func:`~coworld.sweep.child.die_with_parent` first (every ``coworld`` command of a job does) is killed when the
     thread calling this function ends, so call it from a thread that waits for the child.
@@ -80,7 +83,7 @@ def spawn(argv: list[str], log: IO[bytes], threads: int) -> subprocess.Popen:
         stdout=log,
         stderr=subprocess.STDOUT,
         env=env,
-        start_new_session=True,
+        process_group=0,
     )
 
 

@@ -69,6 +69,7 @@ def test_stop_ends_the_running_command_and_its_process_group(tmp_path, process_g
     process = JobProcess(job, threads=1)
     record = json.loads(job.pid_file.read_text())
     assert os.getpgid(record["pid"]) == record["pid"]  # the command leads its own process group
+    assert os.getsid(record["pid"]) == os.getsid(0)  # in the sweep's session, so the sweep's nice holds for it
     time.sleep(1.0)
     assert process.poll() is None
     process.stop(grace=5.0)
