@@ -6,7 +6,7 @@
 * ``report.md`` -- the Table-1-style table with the aggregate row, ours beside the later CoWorld paper's published
   numbers (:mod:`coworld.report.paper`), the variants and value-check tables, CoWorld's own diagnostics
   (:mod:`coworld.report.diagnostics`), the figures, and which runs are not finished (:mod:`coworld.report.tables`);
-* ``curves-<target>.png``, ``value_check.png``, ``ablation.png`` (:mod:`coworld.report.plots`).
+* ``curves-<target>.png``, ``value_check.png``, ``ablation.png``, ``cap.png`` (:mod:`coworld.report.plots`).
 
 It works on what exists: a partial sweep reports its finished runs and draws the curves of all. The files name run
 folders relative to ``out`` (and the sweep by its folder's name), so a report committed with its runs names no
@@ -78,6 +78,8 @@ def write_report(root: str | Path, out: str | Path | None = None) -> Report:
         figures.append(("Value check (Figure 4(b))", "value_check.png"))
     if plots.ablation_bars(results, out / "ablation.png"):
         figures.append(("CoWorld's variants (Figure 4(a))", "ablation.png"))
+    if plots.cap_curves(results, out / "cap.png"):
+        figures.append(("The target critic under Eq. 6's cap", "cap.png"))
     files += [out / name for _, name in figures]
 
     md_path = out / "report.md"

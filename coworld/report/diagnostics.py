@@ -15,6 +15,7 @@ A term that is switched off logs nothing and shows as a dash.
 
 from __future__ import annotations
 
+import json
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -96,3 +97,22 @@ def diagnostics_table(results: Sequence[RunResult]) -> str:
         ]
         lines.append(f"| {r.source} → {r.target} | {r.label} | {r.seed} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
+
+
+def zeta(run_dir: Path) -> float | None:
+    """The run's ``coworld.zeta`` (Eq. 6's scale on the target critic), from its config.json; None where absent."""
+    try:
+        value = json.loads((Path(run_dir) / "config.json").read_bytes()).get("coworld", {}).get("zeta")
+    except (OSError, ValueError, AttributeError):
+        return None
+    return float(value) if _finite(value) and value > 0 else None
+
+
+def cap_curve(records: Sequence[Mapping[str, Any]], zeta: float) -> list[tuple[int, float, float]]:
+    """(target update, target critic, cap) at each log where both critics' values on the imagined target states were
+    logged: the cap is the capping critic's value over ``zeta``, the level Eq. 6 holds the target critic under."""
+    return [
+        (int(r["step"]), float(r[TARGET_VALUE]), float(r[SOURCE_VALUE]) / zeta)
+        for r in records
+        if _finite(r.get(TARGET_VALUE)) and _finite(r.get(SOURCE_VALUE))
+    ]

@@ -5,7 +5,9 @@
   against its training hours;
 * the value check (Figure 4(b)): per pair, the critic's mean estimate next to the true discounted return, per
   algorithm and variant, and for CoWorld what the critic that caps its target critic says of the same states;
-* the ablation (Figure 4(a)), when the runs have CoWorld variants: mean ± std of the final return per variant.
+* the ablation (Figure 4(a)), when the runs have CoWorld variants: mean ± std of the final return per variant;
+* the cap, for CoWorld's runs: the target critic's mean value on imagined target states against the level Eq. 6
+  holds it under (the capping critic's value there over zeta), against target updates.
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from coworld.errors import CoworldError
+from coworld.report.diagnostics import cap_curve, zeta
 from coworld.report.results import ONLINE_ALGO, RunResult, learning_curve, read_run_metrics, wall_clock_curve
 from coworld.report.tables import label_order
 from coworld.text import count
@@ -158,5 +161,40 @@ def ablation_bars(results: Sequence[RunResult], path: Path) -> bool:
         ax.set_ylabel("final return")
         ax.set_title(target, fontsize="small")
         ax.grid(axis="y", alpha=0.3)
+    fig.savefig(path, dpi=120)
+    return True
+
+
+def cap_curves(results: Sequence[RunResult], path: Path) -> bool:
+    """Per target (subplot), each CoWorld label's target critic (solid) and the cap on it, the capping critic's value
+    over the run's zeta (dashed), mean over seeds at each log; False (nothing written) when no run logged them."""
+    runs = [r for r in results if r.algo == "coworld"]
+    curves = {}
+    for r in runs:
+        scale = zeta(Path(r.run_dir))
+        curve = cap_curve(read_run_metrics(Path(r.run_dir)), scale) if scale else []
+        if curve:
+            curves[r.run_dir] = curve
+    targets = list(dict.fromkeys(r.target for r in runs if r.run_dir in curves))
+    if not targets:
+        return False
+    fig = _figure(5.5 * len(targets), 4.2)
+    axes = fig.subplots(1, len(targets), squeeze=False)[0]
+    for ax, target in zip(axes, targets, strict=True):
+        here = [r for r in runs if r.target == target and r.run_dir in curves]
+        for i, label in enumerate(label_order(here)):
+            mine = [curves[r.run_dir] for r in here if r.label == label]
+            for column, style, name in ((1, "-", f"{label}: target critic"), (2, "--", "cap")):
+                steps, mean, _ = mean_band([[(c[0], c[column]) for c in curve] for curve in mine])
+                ax.plot(steps, mean, style, color=f"C{i}", label=name if column == 1 else None, linewidth=1.2)
+        ax.set_yscale("log")
+        ax.yaxis.set_major_formatter("{x:g}")
+        ax.yaxis.set_minor_formatter("{x:g}")
+        ax.tick_params(axis="y", which="minor", labelsize="x-small")
+        ax.set_xlabel("target updates")
+        ax.set_title(f"{target} (dashed: the capping critic / zeta)", fontsize="small")
+        ax.grid(alpha=0.3, which="both")
+        ax.legend(fontsize="x-small")
+    axes[0].set_ylabel("value on imagined target states")
     fig.savefig(path, dpi=120)
     return True

@@ -17,7 +17,7 @@ from coworld import envs
 from coworld.cli import main
 from coworld.report import results as results_module
 from coworld.report import write_report
-from coworld.report.diagnostics import diagnostics_table, series
+from coworld.report.diagnostics import cap_curve, diagnostics_table, series, zeta
 from coworld.report.plots import curve_runs, mean_band
 from coworld.report.results import find_run_dirs, learning_curve, load_result, load_results, wall_clock_curve
 from coworld.report.tables import iqm_interval, label_order, results_table, value_table
@@ -186,6 +186,7 @@ def test_report_files_and_unfinished_runs(tmp_path, score_scale):
     for name in ("value_check.png",):
         assert (tmp_path / name).read_bytes()[:4] == b"\x89PNG"
     assert not (tmp_path / "ablation.png").exists()  # no CoWorld variants here
+    assert not (tmp_path / "cap.png").exists()  # no CoWorld run logged its critics
 
 
 def test_curves_keep_the_target_evaluations_of_coworld(tmp_path):
@@ -368,7 +369,7 @@ def test_coworld_diagnostics_summarise_each_term_from_the_logs(tmp_path):
         {"step": 300, "target/coworld/align_kl": float("nan")},  # a non-finite log is not a value
     ]  # fmt: skip
     on = make_run(tmp_path, "cw", algo="coworld", source="toy_reach", target="toy_reach_shifted", seed=3,
-                  returns=[1.0], records=records)  # fmt: skip
+                  returns=[1.0], records=records, coworld={"zeta": 2.0})  # fmt: skip
     off = [{"step": 100, "target/coworld/align_kl": 1.0}]  # value regulariser and relabelling switched off
     make_run(tmp_path, "cw-off", algo="coworld", source="toy_reach", target="toy_reach_shifted", seed=4,
              returns=[1.0], records=off)  # fmt: skip
@@ -386,6 +387,8 @@ def test_coworld_diagnostics_summarise_each_term_from_the_logs(tmp_path):
     out = CliRunner().invoke(main, ["report", str(tmp_path)])
     assert out.exit_code == 0, out.output
     assert "## CoWorld's terms" in (tmp_path / "report.md").read_text()
+    assert cap_curve(records, zeta(on)) == [(100, 4.0, 1.5), (200, 2.0, 2.5)]  # the cap: the source critic / zeta
+    assert (tmp_path / "cap.png").read_bytes()[:4] == b"\x89PNG" and "(cap.png)" in (tmp_path / "report.md").read_text()
 
 
 def test_lompo_and_the_ewc_fine_tuned_runs_get_their_own_columns_and_curves(tmp_path: Path) -> None:
