@@ -184,13 +184,15 @@ def cap_curves(results: Sequence[RunResult], path: Path) -> bool:
         here = [r for r in runs if r.target == target and r.run_dir in curves]
         for i, label in enumerate(label_order(here)):
             mine = [curves[r.run_dir] for r in here if r.label == label]
-            for column, style, name in ((1, "-", f"{label}: target critic"), (2, "--", "cap")):
+            for column, style in ((1, "-"), (2, "--")):  # the target critic, then the cap
                 steps, mean, _ = mean_band([[(c[0], c[column]) for c in curve] for curve in mine])
-                ax.plot(steps, mean, style, color=f"C{i}", label=name if column == 1 else None, linewidth=1.2)
-        ax.set_yscale("log")
-        ax.yaxis.set_major_formatter("{x:g}")
-        ax.yaxis.set_minor_formatter("{x:g}")
-        ax.tick_params(axis="y", which="minor", labelsize="x-small")
+                name = f"{label}: target critic" if column == 1 else None
+                ax.plot(steps, mean, style, color=f"C{i}", label=name, linewidth=1.2)
+        if all(min(c[1], c[2]) > 0 for r in here for c in curves[r.run_dir]):  # values apart by a factor of zeta
+            ax.set_yscale("log")
+            ax.yaxis.set_major_formatter("{x:g}")
+            ax.yaxis.set_minor_formatter("{x:g}")
+            ax.tick_params(axis="y", which="minor", labelsize="x-small")
         ax.set_xlabel("target updates")
         ax.set_title(f"{target} (dashed: the capping critic / zeta)", fontsize="small")
         ax.grid(alpha=0.3, which="both")
