@@ -36,9 +36,28 @@ COMMANDS = {
 }
 
 
+SUMMARIES = {
+    "tasks": "List the tasks, their returns and the source -> target pairs.",
+    "render": "Save one random episode's frames as PNG files.",
+    "collect": "Collect an offline dataset in a task.",
+    "dataset": "Inspect, check, merge, import and export datasets.",
+    "train": "Train CoWorld or a baseline on a dataset.",
+    "eval": "Evaluate a trained run: return and value check.",
+    "config": "Print the resolved config as JSON.",
+    "viz": "Pictures of predictions, latents and datasets.",
+    "sweep": "Run a paper table or a grid of runs.",
+    "report": "Tables and figures from a folder of runs.",
+}
+"""Each command's first line, as `coworld --help` lists it without importing the commands (and torch)."""
+
+
 class _LazyGroup(click.Group):
     def list_commands(self, ctx: click.Context) -> list[str]:
         return sorted(COMMANDS)
+
+    def format_commands(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
+        with formatter.section("Commands"):
+            formatter.write_dl([(name, SUMMARIES[name]) for name in self.list_commands(ctx)])
 
     def get_command(self, ctx: click.Context, name: str) -> click.Command | None:
         if name not in COMMANDS:

@@ -17,6 +17,7 @@ import os
 import re
 import shlex
 import subprocess
+import sys
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -513,6 +514,19 @@ def test_an_unknown_config_key_is_found() -> None:
     assert "train.bach_size" in command_problem("coworld train --target walker_uphill --set train.bach_size=8")
 
 
+def test_the_list_of_commands_is_shown_without_importing_them() -> None:
+    """`coworld --help` answers at once: no command module is imported for it, nor torch."""
+    code = (
+        "import sys; from click.testing import CliRunner; from coworld.cli import main;"
+        "out = CliRunner().invoke(main, ['--help']); assert out.exit_code == 0, out.output; print(out.output);"
+        "print(sorted(m for m in sys.modules if m == 'torch' or m.startswith('coworld.commands')))"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True)
+    help_text, imported = done.stdout.rstrip().rsplit("\n", 1)
+    assert imported == "[]"
+    assert all(f"  {name} " in help_text for name in cli.COMMANDS)
+
+
 DOC_PATH = re.compile(r"\b((?:docs/[\w-]+|datasets/README)\.md)\b")
 
 
@@ -521,6 +535,7 @@ def test_each_command_says_what_it_is_for_and_points_to_its_docs(name: str) -> N
     command = cli.main.get_command(click.Context(cli.main), name)
     assert command is not None and command.help
     assert not command.get_short_help_str(limit=70).endswith("..."), "one line, whole in `coworld --help`'s list"
+    assert cli.SUMMARIES[name] == command.get_short_help_str(limit=70), "the list shows the command's own line"
     pointed = DOC_PATH.findall(command.help)
     assert pointed, f"`coworld {name} --help` names no docs page"
     assert all((ROOT / path).exists() for path in pointed), pointed
