@@ -413,3 +413,49 @@ def test_lompo_and_the_ewc_fine_tuned_runs_get_their_own_columns_and_curves(tmp_
     names = [cell.strip() for cell in header.split("|")[1:-1]]
     assert cells[names.index("lompo")] == "7.0 (n=1)"  # one seed: no spread to show
     assert cells[names.index("dreamerv2-finetune-ewc")] == "**21.0 (n=1)**"  # the best of the row
+
+
+@pytest.fixture
+def drawn(monkeypatch):
+    """The figures the report saves, by file name, kept when they are written."""
+    from matplotlib.figure import Figure
+
+    figures = {}
+    save = Figure.savefig
+
+    def keep(figure, path, *args, **kwargs):
+        figures[Path(path).name] = figure
+        return save(figure, path, *args, **kwargs)
+
+    monkeypatch.setattr(Figure, "savefig", keep)
+    return figures
+
+
+def test_the_figures_draw_the_variants_against_the_baselines_and_each_critic_under_its_cap(tmp_path, drawn):
+    """Figure 4(a) draws the other algorithms as configured as dashed lines at their mean; cap.png draws each CoWorld
+    label's target critic (solid) and its cap, the capping critic's value over the run's zeta (dashed)."""
+    target = "toy_reach_shifted"
+    logs = [{"step": s, "target/coworld/target_value": v, "target/coworld/source_value": 30.0} for s, v in
+            ((100, 2.0), (200, 4.0))]  # fmt: skip
+    for seed in (0, 1):
+        make_run(tmp_path, f"cw{seed}", algo="coworld", source="toy_reach", target=target, seed=seed, returns=[20.0],
+                 records=logs, coworld={"zeta": 1.0})  # fmt: skip
+        make_run(tmp_path, f"cw10-{seed}", algo="coworld", source="toy_reach", target=target, seed=seed,
+                 returns=[30.0], variant="zeta10", records=logs, coworld={"zeta": 10.0})  # fmt: skip
+        make_run(tmp_path, f"dv{seed}", algo="dreamerv2", target=target, seed=seed, returns=[10.0 + seed])
+        make_run(tmp_path, f"pen{seed}", algo="dreamerv2-penalty", target=target, seed=seed, returns=[5.0])
+    write_report(tmp_path)
+    (ablation,) = drawn["ablation.png"].axes
+    dashed = {line.get_label(): line.get_ydata()[0] for line in ablation.lines if line.get_linestyle() == "--"}
+    assert dashed == {"dreamerv2": 10.5, "dreamerv2-penalty": 5.0}
+    assert [round(bar.get_height(), 6) for bar in ablation.patches] == [20.0, 30.0]
+    (cap,) = drawn["cap.png"].axes
+    lines = [(line.get_label(), line.get_linestyle(), list(line.get_ydata())) for line in cap.lines]
+    assert [(style, values) for _, style, values in lines] == [
+        ("-", [2.0, 4.0]), ("--", [30.0, 30.0]), ("-", [2.0, 4.0]), ("--", [3.0, 3.0])
+    ]  # fmt: skip
+    assert [label for label, _, _ in lines if not label.startswith("_")] == [
+        "coworld: target critic",
+        "coworld (zeta10): target critic",
+    ]
+    assert cap.get_yscale() == "log"
