@@ -8,7 +8,8 @@
   target agent's imagined states where ``zeta * v_T > v_S``, so the source critic caps the target critic), over the
   whole run and at the last log; where it would bind at ``zeta`` 2, 3, 5 and 10 (``target/coworld/binds_zeta_Z``,
   measured without effect), over the whole run; and the two critics' mean values on those states
-  (``target/coworld/target_value``, ``target/coworld/source_value``).
+  (``target/coworld/target_value``, ``target/coworld/source_value``), with the cap itself: the capping critic's
+  value over the run's ``zeta`` (its config.json), the level the term holds the target critic under.
 
 A term that is switched off logs nothing and shows as a dash.
 """
@@ -42,6 +43,9 @@ class Series:
     last: float
     mean: float
     count: int
+
+    def scaled(self, factor: float) -> Series:
+        return Series(self.first * factor, self.last * factor, self.mean * factor, self.count)
 
 
 def series(records: Sequence[Mapping[str, Any]], key: str) -> Series | None:
@@ -82,18 +86,20 @@ def diagnostics_table(results: Sequence[RunResult]) -> str:
     lines = [
         "| pair | algorithm | seed | alignment KL, first → last | relabelled reward loss, first → last"
         " | max-min binds: run (last) | would bind at zeta 2 / 3 / 5 / 10 | target critic: run (last)"
-        " | the cap's critic: run (last) |",
-        "|---|---|---:|---|---|---|---|---|---|",
+        " | the cap's critic: run (last) | the cap, its critic / zeta: run (last) |",
+        "|---|---|---:|---|---|---|---|---|---|---|",
     ]
     for r in runs:
         records = read_run_metrics(Path(r.run_dir))
+        capping, scale = series(records, SOURCE_VALUE), zeta(Path(r.run_dir))
         cells = [
             _arrow(series(records, ALIGN)),
             _arrow(series(records, RELABEL)),
             _share(series(records, MAXMIN)),
             " / ".join(_percent(series(records, f"target/coworld/binds_zeta_{z}")) for z in PROBES),
             _value(series(records, TARGET_VALUE)),
-            _value(series(records, SOURCE_VALUE)),
+            _value(capping),
+            _value(None if capping is None or scale is None else capping.scaled(1 / scale)),
         ]
         lines.append(f"| {r.source} → {r.target} | {r.label} | {r.seed} | " + " | ".join(cells) + " |")
     return "\n".join(lines)

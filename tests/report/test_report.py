@@ -381,8 +381,8 @@ def test_coworld_diagnostics_summarise_each_term_from_the_logs(tmp_path):
     assert len(table) == 2 + 2  # header, rule, the two CoWorld runs; not the DreamerV2 run
     pair = "| toy_reach → toy_reach_shifted | coworld"
     probes = "40.0% / 50.0% / 60.0% / 70.0%"  # where the term would bind at zeta 2, 3, 5, 10: the run's mean
-    assert table[2] == f"{pair} | 3 | 2 → 0.5 | 0.8 → 0.2 | 30.0% (10.0%) | {probes} | 3 (2) | 4 (5) |"
-    assert table[3] == f"{pair} | 4 | 1 → 1 | – | – | – / – / – / – | – | – |"
+    assert table[2] == f"{pair} | 3 | 2 → 0.5 | 0.8 → 0.2 | 30.0% (10.0%) | {probes} | 3 (2) | 4 (5) | 2 (2.5) |"
+    assert table[3] == f"{pair} | 4 | 1 → 1 | – | – | – / – / – / – | – | – | – |"
     assert load_result(on).algo == "coworld"
     out = CliRunner().invoke(main, ["report", str(tmp_path)])
     assert out.exit_code == 0, out.output
