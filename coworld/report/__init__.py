@@ -19,7 +19,16 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
-from coworld.report.results import ONLINE_ALGO, RunResult, learning_curve, load_results, shown_path, to_csv
+from coworld.report.results import (
+    ONLINE_ALGO,
+    RunResult,
+    learning_curve,
+    load_results,
+    read_run_metrics,
+    shown_path,
+    source_steps,
+    to_csv,
+)
 from coworld.storage import check_writable, write_text_atomically
 from coworld.text import count
 
@@ -198,10 +207,17 @@ def _markdown(
     if unfinished:
         lines += ["## Not finished", "", "Runs without eval.json (training, failed, or never evaluated):", ""]
         for r in unfinished:
-            done = f"{r.updates} updates logged" if r.updates is not None else "nothing logged yet"
-            lines.append(f"- `{shown_path(r.run_dir, out)}` ({r.label}, seed {r.seed}): {done}")
+            lines.append(f"- `{shown_path(r.run_dir, out)}` ({r.label}, seed {r.seed}): {_progress(r)}")
         lines.append("")
     return "\n".join(lines)
+
+
+def _progress(r: RunResult) -> str:
+    """How far an unfinished run has logged: its target updates, else its source agent's env steps."""
+    if r.updates is not None:
+        return f"{r.updates} updates logged"
+    steps = source_steps(read_run_metrics(Path(r.run_dir)))
+    return "nothing logged yet" if steps is None else f"pretraining its source, {steps:,} env steps logged"
 
 
 def _relative_line(problem: str, root: Path, out: Path) -> str:

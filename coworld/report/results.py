@@ -161,6 +161,12 @@ def _updates(records: list[dict[str, Any]], algo: str) -> int | None:
     return max(steps) if steps else None
 
 
+def source_steps(records: list[dict[str, Any]]) -> int | None:
+    """The last source env step logged (a source agent's pretraining and source phases); None where there is none."""
+    steps = [int(r["step"]) for r in records if r.get("unit") == "source_env_step"]
+    return max(steps) if steps else None
+
+
 def _elapsed(records: list[dict[str, Any]]) -> list[float | None]:
     """Training seconds at each record, summed over the run's segments (a resumed run's logger restarts its
     clock); None for a record without a time."""

@@ -459,3 +459,18 @@ def test_the_figures_draw_the_variants_against_the_baselines_and_each_critic_und
         "coworld (zeta10): target critic",
     ]
     assert cap.get_yscale() == "log"
+
+
+def test_an_unfinished_run_says_how_far_it_logged(tmp_path):
+    """Target updates where it has made some; a CoWorld run still pretraining its source, its env steps there."""
+    target = "toy_reach_shifted"
+    source_steps = [{"step": s, "unit": "source_env_step", "source/wm/loss": 1.0} for s in (500, 1500)]
+    make_run(tmp_path, "pretraining", algo="coworld", source="toy_reach", target=target, seed=0, records=source_steps)
+    make_run(tmp_path, "target", algo="coworld", source="toy_reach", target=target, seed=1,
+             records=[*source_steps, {"step": 250, "target/wm/loss": 1.0}])  # fmt: skip
+    make_run(tmp_path, "fresh", algo="coworld", source="toy_reach", target=target, seed=2)
+    write_report(tmp_path)
+    unfinished = (tmp_path / "report.md").read_text().split("## Not finished", 1)[1]
+    assert "`pretraining` (coworld, seed 0): pretraining its source, 1,500 env steps logged" in unfinished
+    assert "`target` (coworld, seed 1): 250 updates logged" in unfinished
+    assert "`fresh` (coworld, seed 2): nothing logged yet" in unfinished
