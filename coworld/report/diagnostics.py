@@ -9,14 +9,13 @@
   whole run and at the last log; where it would bind at ``zeta`` 2, 3, 5 and 10 (``target/coworld/binds_zeta_Z``,
   measured without effect), over the whole run; and the two critics' mean values on those states
   (``target/coworld/target_value``, ``target/coworld/source_value``), with the cap itself: the capping critic's
-  value over the run's ``zeta`` (its config.json), the level the term holds the target critic under.
+  value over the run's ``zeta`` (:attr:`RunResult.zeta`), the level the term holds the target critic under.
 
 A term that is switched off logs nothing and shows as a dash.
 """
 
 from __future__ import annotations
 
-import json
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -91,7 +90,7 @@ def diagnostics_table(results: Sequence[RunResult]) -> str:
     ]
     for r in runs:
         records = read_run_metrics(Path(r.run_dir))
-        capping, scale = series(records, SOURCE_VALUE), zeta(Path(r.run_dir))
+        capping = series(records, SOURCE_VALUE)
         cells = [
             _arrow(series(records, ALIGN)),
             _arrow(series(records, RELABEL)),
@@ -99,19 +98,10 @@ def diagnostics_table(results: Sequence[RunResult]) -> str:
             " / ".join(_percent(series(records, f"target/coworld/binds_zeta_{z}")) for z in PROBES),
             _value(series(records, TARGET_VALUE)),
             _value(capping),
-            _value(None if capping is None or scale is None else capping.scaled(1 / scale)),
+            _value(None if capping is None or r.zeta is None else capping.scaled(1 / r.zeta)),
         ]
         lines.append(f"| {r.source} → {r.target} | {r.label} | {r.seed} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
-
-
-def zeta(run_dir: Path) -> float | None:
-    """The run's ``coworld.zeta`` (Eq. 6's scale on the target critic), from its config.json; None where absent."""
-    try:
-        value = json.loads((Path(run_dir) / "config.json").read_bytes()).get("coworld", {}).get("zeta")
-    except (OSError, ValueError, AttributeError):
-        return None
-    return float(value) if _finite(value) and value > 0 else None
 
 
 def cap_curve(records: Sequence[Mapping[str, Any]], zeta: float) -> list[tuple[int, float, float]]:

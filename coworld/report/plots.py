@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from coworld.errors import CoworldError
-from coworld.report.diagnostics import cap_curve, zeta
+from coworld.report.diagnostics import cap_curve
 from coworld.report.results import ONLINE_ALGO, RunResult, learning_curve, read_run_metrics, wall_clock_curve
 from coworld.report.tables import label_order
 from coworld.text import count
@@ -171,8 +171,7 @@ def cap_curves(results: Sequence[RunResult], path: Path) -> bool:
     runs = [r for r in results if r.algo == "coworld"]
     curves = {}
     for r in runs:
-        scale = zeta(Path(r.run_dir))
-        curve = cap_curve(read_run_metrics(Path(r.run_dir)), scale) if scale else []
+        curve = cap_curve(read_run_metrics(Path(r.run_dir)), r.zeta) if r.zeta else []
         if curve:
             curves[r.run_dir] = curve
     targets = list(dict.fromkeys(r.target for r in runs if r.run_dir in curves))

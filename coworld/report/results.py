@@ -64,6 +64,8 @@ class RunResult:
     """Quality of the target dataset it trained on (:func:`dataset_quality`), None where unknown."""
     value_source: float | None = None
     """CoWorld: the mean estimate, over the same steps, of the critic that caps the target critic (Eq. 6)."""
+    zeta: float | None = None
+    """CoWorld: Eq. 6's scale on the target critic (``coworld.zeta`` in config.json); None for other algorithms."""
 
     @property
     def paper(self) -> Published | None:
@@ -203,15 +205,15 @@ def wall_clock_curve(
     return curve
 
 
-def _variant(run_dir: Path, algo: str, problems: list[str]) -> tuple[str, str | None]:
-    """(variant, pair source) from sweep-run.json, else the CoWorld switches in config.json."""
+def _variant(run_dir: Path, algo: str, config: Mapping[str, Any], problems: list[str]) -> tuple[str, str | None]:
+    """(variant, pair source) from sweep-run.json, else the CoWorld switches in the run's config."""
     record = _json_object(run_dir / "sweep-run.json", problems)
     if record is not None:
         source = record.get("source")
         return str(record.get("variant", "")), source if isinstance(source, str) else None
     if algo != "coworld":
         return "", None
-    switches = (_json_object(run_dir / "config.json", []) or {}).get("coworld")  # its problems: load_result's
+    switches = config.get("coworld")
     if not isinstance(switches, dict):
         return "", None
     off = [name for key, name in ABLATION_SWITCHES if switches.get(key) is False]
@@ -313,9 +315,10 @@ class UnreadableRun(CoworldError):
     """A run folder the report leaves out: its ``config.json``, which says which seed it is, cannot be read."""
 
 
-def _seed(run_dir: Path) -> int:
-    """The run's seed (``config.json``); -1 where there is no config (an older collector's run folder). A config
-    that cannot be read, or has no whole-number seed, raises :class:`UnreadableRun` with the line that says so."""
+def _config(run_dir: Path) -> tuple[dict[str, Any], int]:
+    """The run's config (``config.json``; empty where there is none, as in an older collector's run folder) and its
+    seed (-1 there). A config that cannot be read, or has no whole-number seed, raises :class:`UnreadableRun` with
+    the line that says so."""
     problems: list[str] = []
     config = _json_object(run_dir / "config.json", problems)
     seed = -1 if config is None else config.get("seed")
@@ -323,7 +326,14 @@ def _seed(run_dir: Path) -> int:
         problems.append(f"{run_dir / 'config.json'}: its seed is {seed!r}, not a whole number")
     if problems:
         raise UnreadableRun(f"{problems[0]}; the run is left out (which seed it is, is unknown)")
-    return seed
+    return config or {}, seed
+
+
+def _zeta(config: Mapping[str, Any]) -> float | None:
+    """``coworld.zeta`` of a config, where it is a positive number."""
+    switches = config.get("coworld")
+    value = switches.get("zeta") if isinstance(switches, dict) else None
+    return float(value) if _is_step(value) and value > 0 else None  # a finite number
 
 
 def _foreign_evaluation(result: Mapping[str, Any] | None, info: Mapping[str, Any]) -> str:
@@ -350,8 +360,8 @@ def load_result(run_dir: Path, qualities: dict[str, str | None] | None = None) -
     algo, target = str(info["algo"]), str(info["target"])
     if info.get("online"):
         algo = ONLINE_ALGO  # the agent a `coworld collect --policy dreamerv2` trained in the target task itself
-    seed = _seed(run_dir)
-    variant, pair_source = _variant(run_dir, algo, problems)
+    config, seed = _config(run_dir)
+    variant, pair_source = _variant(run_dir, algo, config, problems)
     source = info.get("source") if isinstance(info.get("source"), str) else None
     source = source or pair_source
     final = std = success = estimate = true = capping = None
@@ -390,6 +400,7 @@ def load_result(run_dir: Path, qualities: dict[str, str | None] | None = None) -
         value_estimate=estimate,
         value_true=true,
         value_source=capping,
+        zeta=_zeta(config) if algo == "coworld" else None,
         normalized_score=normalized(target, final),
         updates=_updates(records, algo),
         wall_time_s=_wall_time(records),

@@ -17,7 +17,7 @@ from coworld import envs
 from coworld.cli import main
 from coworld.report import results as results_module
 from coworld.report import write_report
-from coworld.report.diagnostics import cap_curve, diagnostics_table, series, zeta
+from coworld.report.diagnostics import cap_curve, diagnostics_table, series
 from coworld.report.plots import curve_runs, mean_band
 from coworld.report.results import find_run_dirs, learning_curve, load_result, load_results, wall_clock_curve
 from coworld.report.tables import iqm_interval, label_order, results_table, value_table
@@ -387,7 +387,8 @@ def test_coworld_diagnostics_summarise_each_term_from_the_logs(tmp_path):
     out = CliRunner().invoke(main, ["report", str(tmp_path)])
     assert out.exit_code == 0, out.output
     assert "## CoWorld's terms" in (tmp_path / "report.md").read_text()
-    assert cap_curve(records, zeta(on)) == [(100, 4.0, 1.5), (200, 2.0, 2.5)]  # the cap: the source critic / zeta
+    assert load_result(on).zeta == 2.0
+    assert cap_curve(records, 2.0) == [(100, 4.0, 1.5), (200, 2.0, 2.5)]  # the cap: the source critic / zeta
     assert (tmp_path / "cap.png").read_bytes()[:4] == b"\x89PNG" and "(cap.png)" in (tmp_path / "report.md").read_text()
 
 
