@@ -19,16 +19,7 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
-from coworld.report.results import (
-    ONLINE_ALGO,
-    RunResult,
-    learning_curve,
-    load_results,
-    read_run_metrics,
-    shown_path,
-    source_steps,
-    to_csv,
-)
+from coworld.report.results import ONLINE_ALGO, RunResult, learning_curve, load_results, shown_path, to_csv
 from coworld.storage import check_writable, write_text_atomically
 from coworld.text import count
 
@@ -216,8 +207,9 @@ def _progress(r: RunResult) -> str:
     """How far an unfinished run has logged: its target updates, else its source agent's env steps."""
     if r.updates is not None:
         return f"{r.updates} updates logged"
-    steps = source_steps(read_run_metrics(Path(r.run_dir)))
-    return "nothing logged yet" if steps is None else f"pretraining its source, {steps:,} env steps logged"
+    if r.source_steps is None:
+        return "nothing logged yet"
+    return f"pretraining its source, {r.source_steps:,} env steps logged"
 
 
 def _relative_line(problem: str, root: Path, out: Path) -> str:

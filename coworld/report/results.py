@@ -64,6 +64,8 @@ class RunResult:
     """Quality of the target dataset it trained on (:func:`dataset_quality`), None where unknown."""
     value_source: float | None = None
     """CoWorld: the mean estimate, over the same steps, of the critic that caps the target critic (Eq. 6)."""
+    source_steps: int | None = None
+    """The last source env step logged (:func:`source_steps`): how far a run that pretrains its source has come."""
     zeta: float | None = None
     """CoWorld: Eq. 6's scale on the target critic (``coworld.zeta`` in config.json); None for other algorithms."""
 
@@ -403,6 +405,7 @@ def load_result(run_dir: Path, qualities: dict[str, str | None] | None = None) -
         zeta=_zeta(config) if algo == "coworld" else None,
         normalized_score=normalized(target, final),
         updates=_updates(records, algo),
+        source_steps=source_steps(records),
         wall_time_s=_wall_time(records),
         problems=tuple(problems),
         dataset_quality=None if info.get("online") else _cached_quality(info.get("dataset"), qualities),
