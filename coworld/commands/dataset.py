@@ -26,11 +26,22 @@ def dataset() -> None:
 
 @dataset.command()
 @click.argument("path", type=input_path())
+@click.option(
+    "--discount",
+    type=click.FloatRange(0, 1, min_open=True),
+    default=0.99,
+    show_default=True,
+    help="gamma of the value line (every preset's critic uses 0.99).",
+)
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as one JSON object.")
-def info(path: Path, as_json: bool) -> None:
-    """Episodes, steps, returns, normalized score, size on disk and metadata of the dataset at PATH."""
+def info(path: Path, discount: float, as_json: bool) -> None:
+    """Episodes, steps, returns, values, normalized score, size on disk and metadata of the dataset at PATH.
+
+    The value line is the discounted return from every step to its episode's end: what a critic of the behaviour
+    that collected the data would estimate, to set beside a trained critic's estimates (coworld eval's value check).
+    """
     with open_dataset(path) as data:
-        summary = data.summary()
+        summary = data.summary(discount)
     if as_json:
         click.echo(json.dumps(summary, indent=2, sort_keys=True))
         return
@@ -51,6 +62,7 @@ def _info_lines(s: dict[str, Any]) -> list[tuple[str, str]]:
         ("steps", f"{s['steps']:,} rows, {s['frames']:,} frames with each episode's final frame"),
         ("return", _stats_text(ret, ".1f")),
         ("length", _stats_text(length, ".0f")),
+        ("value", f"{_stats_text(s['value'], '.2f')}  (discounted return to the episode's end, gamma {s['discount']})"),
         ("normalized", _stats_text(norm, ".1f") if norm else "unknown (no reference returns in the metadata)"),
     ]
     ratio = s["compression_ratio"]

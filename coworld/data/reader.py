@@ -26,6 +26,7 @@ import psutil
 from coworld.data.lock import holder_alive, read_lock
 from coworld.data.sampler import SequenceSampler
 from coworld.data.schema import PLUGIN_CODECS, decode_attrs, import_hdf5plugin, structural_problems
+from coworld.data.values import true_values
 from coworld.errors import DatasetError
 
 # Share of the currently available memory that mode "auto" lets the frames take before it streams instead.
@@ -185,6 +186,13 @@ class Dataset:
         scores = normalized_score(self.returns, self.reference)
         return None if scores is None else np.asarray(scores)
 
+    def values(self, discount: float) -> np.ndarray:
+        """(N,) the discounted return from every row to its episode's end (:func:`~coworld.data.values.true_values`):
+        what a critic of the behaviour that collected the data estimates at each step."""
+        return np.concatenate(
+            [true_values(self._rewards[s : s + t], discount) for s, t in zip(self.starts, self.lengths, strict=True)]
+        )
+
     def frame_storage(self) -> tuple[int, int]:
         """(raw, stored) bytes of all frames (rows and final frames): raw / stored is the compression ratio."""
         f = self._handle()
@@ -192,8 +200,9 @@ class Dataset:
         stored = f["observations"].id.get_storage_size() + f["episodes/final_observations"].id.get_storage_size()
         return raw, stored
 
-    def summary(self) -> dict[str, Any]:
-        """Counts, return and length statistics, normalized score, storage and metadata, as plain values."""
+    def summary(self, discount: float = 0.99) -> dict[str, Any]:
+        """Counts, return, length and value statistics (the discounted return from each step, at ``discount``),
+        normalized score, storage and metadata, as plain values."""
         raw, stored = self.frame_storage()
         out: dict[str, Any] = {
             "path": str(self.path),
@@ -207,6 +216,8 @@ class Dataset:
             "terminated_episodes": int(self.terminated.sum()),
             "return": _stats(self.returns),
             "length": _stats(self.lengths),
+            "value": _stats(self.values(discount)),
+            "discount": discount,
             "normalized_score": None,
             "file_bytes": self.path.stat().st_size,
             "frame_bytes_raw": raw,

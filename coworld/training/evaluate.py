@@ -23,6 +23,7 @@ import numpy as np
 import torch
 
 from coworld import envs, interrupt
+from coworld.data.values import true_values
 from coworld.progress import progress_bar
 
 
@@ -112,30 +113,6 @@ class EvalResult:
     def to_json(self, path: str | Path) -> None:
         Path(path).parent.mkdir(parents=True, exist_ok=True)
         Path(path).write_text(json.dumps(self.to_dict(), indent=2) + "\n")
-
-
-def discounted_returns(rewards: np.ndarray, discount: float) -> np.ndarray:
-    """G_t = sum_k discount^k r_{t+k} for every step of one episode; rewards (T,) -> (T,)."""
-    out = np.zeros(len(rewards), dtype=np.float64)
-    running = 0.0
-    for t in range(len(rewards) - 1, -1, -1):
-        running = rewards[t] + discount * running
-        out[t] = running
-    return out
-
-
-def true_values(rewards: np.ndarray, discount: float) -> np.ndarray:
-    """What the critic's ``v(z_t)`` estimates, measured: the discounted return from step ``t`` of an episode.
-
-    ``rewards (T,)``: ``rewards[t]`` is earned by the action taken at observation ``o_t``. A DreamerV2 critic
-    at the state ``z_t`` that filtered ``o_t`` regresses lambda-returns ``R_t = r_t + gamma * ...`` whose first
-    reward is the one received on *arriving* at ``o_t`` (the replay convention: step ``t`` holds the reward
-    of the action that led to it, zero at the first step). So the true value of step ``t`` is
-    ``sum_k gamma^k r'_{t+k}`` over the arrival rewards ``r' = [0, rewards[0], ..., rewards[T-1]]``; returns
-    ``(T,)`` for the steps ``0 .. T-1`` where the policy acted.
-    """
-    arrival = np.concatenate([[0.0], np.asarray(rewards, np.float64)])
-    return discounted_returns(arrival, discount)[:-1]
 
 
 def episode_seed(seed: int, episode: int) -> int:

@@ -35,6 +35,23 @@ def test_info_reports_counts_returns_scores_and_size(dataset_path: Path, episode
     assert lines["complete"] == "yes" and lines["quality"] == "random"
 
 
+def test_info_values_are_each_steps_discounted_return_to_its_episodes_end(
+    dataset_path: Path, episodes: list[dict[str, Any]]
+) -> None:
+    """The value line: over every row, the sum of gamma^k times the rewards received on arriving at the following
+    steps (the first step's value is 0 + gamma r_0 + ...), counted here by brute force."""
+    gamma = 0.9
+    values = []
+    for ep in episodes:
+        arrival = np.concatenate([[0.0], ep["rewards"].astype(np.float64)])
+        values += [sum(gamma**k * r for k, r in enumerate(arrival[t:])) for t in range(len(ep["rewards"]))]
+    result = CliRunner().invoke(main, ["dataset", "info", "--discount", str(gamma), str(dataset_path)])
+    assert result.exit_code == 0, result.output
+    line = dict(line.split(None, 1) for line in result.stdout.splitlines())["value"]
+    assert line.split()[:4] == ["mean", f"{np.mean(values):.2f}", "std", f"{np.std(values):.2f}"]
+    assert line.split()[6:8] == ["max", f"{np.max(values):.2f}"] and "gamma 0.9)" in line
+
+
 def test_info_json_is_the_summary(dataset_path: Path) -> None:
     result = CliRunner().invoke(main, ["dataset", "info", "--json", str(dataset_path)])
     assert result.exit_code == 0, result.output

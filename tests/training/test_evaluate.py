@@ -8,7 +8,8 @@ import torch
 
 from coworld.agents.dreamerv2 import DreamerV2
 from coworld.config import make_config
-from coworld.training.evaluate import evaluate, true_values
+from coworld.data.values import true_values
+from coworld.training.evaluate import evaluate
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
