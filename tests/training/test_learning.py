@@ -1,8 +1,9 @@
-"""DreamerV2 learns: on the toy pixel task its evaluation return rises clearly above a random policy's.
+"""DreamerV2 learns: on the toy pixel task its evaluation return rises above what any constant action earns.
 
-What 1,300 steps teach the tiny agent is the goal's direction: pushing up and right from any frame returns 30.0 on
-toy_reach (the best constant action 30.7), which is where the learned policy ends up. The test asserts learning
-(return improves over random), not perception (that needs returns above 31; benchmarks/RESULTS.md).
+CI's learning test is the perception test: the ``cpu`` preset, 3,000 env steps on toy_reach, must score more than
+the best constant direction + 3 (a random policy earns about 10). The ``tiny`` preset's direction test (1,300 steps,
+return above random, which the perception test's threshold implies) and the perception test on more seeds are
+``slow``.
 """
 
 from __future__ import annotations
@@ -52,8 +53,10 @@ def _learn_online(tmp_path, config, max_steps: int) -> tuple[DreamerV2, int]:
     return agent, result.updates
 
 
-@pytest.mark.long
+@pytest.mark.slow
 def test_tiny_dreamerv2_learns_toy_reach(tmp_path):
+    """What 1,300 steps teach the tiny agent is the goal's direction: pushing up and right from any frame returns
+    30.0 on toy_reach (the best constant action 30.7), which is where the learned policy ends up."""
     config = make_config(
         "tiny",
         ["device=cpu", "train.prefill=500", "train.train_every=2", "train.eval_every=100000", "train.log_every=500"],
