@@ -129,7 +129,8 @@ def value_check(results: Sequence[RunResult], path: Path) -> bool:
         ax.set_title(target, fontsize="small")
         ax.grid(axis="y", alpha=0.3)
     axes[0].set_ylabel("value (mean over seeds)")
-    axes[0].legend(fontsize="small")
+    handles, names = axes[0].get_legend_handles_labels()
+    fig.legend(handles, names, loc="outside upper center", ncols=len(names), fontsize="small")  # off the bars
     fig.savefig(path, dpi=120)
     return True
 
@@ -165,6 +166,11 @@ def ablation_bars(results: Sequence[RunResult], path: Path) -> bool:
     return True
 
 
+def _two_three_five(value: float, _position: int) -> str:
+    """A log axis's minor tick label at 2, 3 and 5 times a power of ten only, so labels stay apart."""
+    return f"{value:g}" if round(value / 10 ** np.floor(np.log10(value))) in (2, 3, 5) else ""
+
+
 def cap_curves(results: Sequence[RunResult], path: Path) -> bool:
     """Per target (subplot), each CoWorld label's target critic (solid) and the cap on it, the capping critic's value
     over the run's zeta (dashed), mean over seeds at each log; False (nothing written) when no run logged them."""
@@ -177,7 +183,7 @@ def cap_curves(results: Sequence[RunResult], path: Path) -> bool:
     targets = list(dict.fromkeys(r.target for r in runs if r.run_dir in curves))
     if not targets:
         return False
-    fig = _figure(5.5 * len(targets), 4.2)
+    fig = _figure(5.5 * len(targets) + 2.5, 4.2)  # + the legend beside the last subplot
     axes = fig.subplots(1, len(targets), squeeze=False)[0]
     for ax, target in zip(axes, targets, strict=True):
         here = [r for r in runs if r.target == target and r.run_dir in curves]
@@ -190,12 +196,12 @@ def cap_curves(results: Sequence[RunResult], path: Path) -> bool:
         if all(min(c[1], c[2]) > 0 for r in here for c in curves[r.run_dir]):  # values apart by a factor of zeta
             ax.set_yscale("log")
             ax.yaxis.set_major_formatter("{x:g}")
-            ax.yaxis.set_minor_formatter("{x:g}")
+            ax.yaxis.set_minor_formatter(_two_three_five)
             ax.tick_params(axis="y", which="minor", labelsize="x-small")
         ax.set_xlabel("target updates")
         ax.set_title(f"{target} (dashed: the capping critic / zeta)", fontsize="small")
         ax.grid(alpha=0.3, which="both")
-        ax.legend(fontsize="x-small")
+        ax.legend(fontsize="x-small", loc="upper left", bbox_to_anchor=(1.0, 1.0))  # beside the lines, not on them
     axes[0].set_ylabel("value on imagined target states")
     fig.savefig(path, dpi=120)
     return True

@@ -173,7 +173,7 @@ def test_the_curves_legend_counts_runs_in_the_singular_and_plural(tmp_path, monk
     assert legend == ["dreamerv2 (2 runs)", "coworld (1 run)"]
 
 
-def test_report_files_and_unfinished_runs(tmp_path, score_scale):
+def test_report_files_and_unfinished_runs(tmp_path, score_scale, drawn):
     make_grid(tmp_path)
     out = CliRunner().invoke(main, ["report", str(tmp_path)])
     assert out.exit_code == 0, out.output
@@ -185,6 +185,9 @@ def test_report_files_and_unfinished_runs(tmp_path, score_scale):
     assert "| toy_reach → toy_reach_shifted | dreamerv2 | 9.00 | 1.00 | – | 3 |" in text
     for name in ("value_check.png",):
         assert (tmp_path / name).read_bytes()[:4] == b"\x89PNG"
+    (check,) = drawn["value_check.png"].axes
+    (legend,) = drawn["value_check.png"].legends  # the figure's, above the bars, not on them
+    assert check.get_legend() is None and legend.get_window_extent().y0 >= check.get_window_extent().y1
     assert not (tmp_path / "ablation.png").exists()  # no CoWorld variants here
     assert not (tmp_path / "cap.png").exists()  # no CoWorld run logged its critics
 
@@ -460,6 +463,14 @@ def test_the_figures_draw_the_variants_against_the_baselines_and_each_critic_und
         "coworld (zeta10): target critic",
     ]
     assert cap.get_yscale() == "log"
+    assert cap.get_legend().get_window_extent().x0 >= cap.get_window_extent().x1  # beside the lines, not on them
+
+
+def test_a_log_axis_labels_its_minor_ticks_at_2_3_and_5_only():
+    from coworld.report.plots import _two_three_five
+
+    labels = [_two_three_five(v, 0) for v in (2.0, 3.0, 4.0, 5.0, 9.0, 20.0, 30.0, 70.0, 0.5)]
+    assert labels == ["2", "3", "", "5", "", "20", "30", "", "0.5"]
 
 
 def test_an_unfinished_run_says_how_far_it_logged(tmp_path):
