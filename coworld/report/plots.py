@@ -65,7 +65,7 @@ def learning_curves(results: Sequence[RunResult], target: str, path: Path) -> bo
     training hours, where a two-phase run's source learning counts too.
     """
     runs, x_label = curve_runs(results, target)
-    fig = _figure(11.0, 4.0)
+    fig = _figure(13.5, 4.0)  # two plots and the legend beside them
     by_updates, by_clock = fig.subplots(1, 2)
     drawn = False
     for label in label_order(runs):
@@ -92,7 +92,7 @@ def learning_curves(results: Sequence[RunResult], target: str, path: Path) -> bo
     fig.suptitle(f"{'/'.join(sources)} → {target}" if sources else target)
     by_updates.set_xlabel(x_label)
     by_updates.set_ylabel("evaluation return (mean ± std over seeds)")
-    by_updates.legend(fontsize="small")
+    fig.legend(*by_updates.get_legend_handles_labels(), loc="outside right upper", fontsize="small")  # off the curves
     by_clock.set_xlabel("training hours (each run)")
     by_clock.set_ylabel("evaluation return")
     for ax in (by_updates, by_clock):

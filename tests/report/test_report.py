@@ -167,10 +167,11 @@ def test_the_curves_legend_counts_runs_in_the_singular_and_plural(tmp_path, monk
     for seed in range(2):
         make_run(tmp_path, f"dv{seed}", algo="dreamerv2", target="toy_reach_shifted", seed=seed, records=records)
     drawn = []
-    monkeypatch.setattr(Figure, "savefig", lambda fig, *a, **k: drawn.append(fig))
+    monkeypatch.setattr(Figure, "savefig", lambda fig, *a, **k: (drawn.append(fig), fig.draw_without_rendering()))
     assert learning_curves(load_results(tmp_path), "toy_reach_shifted", tmp_path / "c.png")
-    legend = [text.get_text() for text in drawn[0].axes[0].get_legend().get_texts()]
-    assert legend == ["dreamerv2 (2 runs)", "coworld (1 run)"]
+    (legend,) = drawn[0].legends  # the figure's, beside both plots, not on a curve
+    assert [text.get_text() for text in legend.get_texts()] == ["dreamerv2 (2 runs)", "coworld (1 run)"]
+    assert legend.get_window_extent().x0 >= max(ax.get_window_extent().x1 for ax in drawn[0].axes)
 
 
 def test_report_files_and_unfinished_runs(tmp_path, score_scale, drawn):
