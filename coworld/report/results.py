@@ -22,8 +22,8 @@ from typing import Any
 from coworld import envs
 from coworld.errors import CoworldError, UnknownTaskError
 from coworld.report.paper import Published, published
+from coworld.training.description import run_description
 from coworld.training.logger import read_metrics
-from coworld.training.run import run_description
 
 ONLINE_ALGO = "dreamerv2-online"
 """How a report names the online DreamerV2 agent that a ``coworld collect --policy dreamerv2`` run trained in the

@@ -37,9 +37,10 @@ from coworld.data.collect import dataset_fields
 from coworld.devices import resolve_device
 from coworld.errors import CoworldError, DatasetError
 from coworld.storage import check_writable
+from coworld.training.description import collector_run_info
 from coworld.training.logger import Logger
 from coworld.training.online import OnlineTrainer
-from coworld.training.run import collector_run_info, prepare_run_dir, preset_warnings, seed_everything
+from coworld.training.run import prepare_run_dir, preset_warnings, seed_everything
 from coworld.training.train import check_backend
 
 TRAINED_QUALITIES = ("medium-replay", "medium-expert", "medium", "expert")

@@ -22,6 +22,7 @@ from coworld.config import Config, first_difference, from_dict, split_preset, to
 from coworld.devices import resolve_device
 from coworld.errors import ConfigError, CoworldError
 from coworld.storage import damaged, read_json_object, write_text_atomically
+from coworld.training.description import run_description
 from coworld.training.job import START_OVER
 
 
@@ -169,12 +170,6 @@ def clear_run_dir(logdir: str | Path) -> None:
             path.unlink()
 
 
-def collector_run_info(task: str, preset: str) -> dict[str, Any]:
-    """The run description of the online DreamerV2 agent that ``coworld collect --policy dreamerv2`` trains: a
-    dreamerv2 run like any other (``online`` says it learned in its environment, not from a dataset)."""
-    return {"algo": "dreamerv2", "source": None, "target": task, "task": task, "preset": preset, "online": True}
-
-
 def load_run(logdir: str | Path, fix: str = "") -> tuple[Config, dict[str, Any]]:
     """The config and run description saved by :func:`prepare_run_dir` (see :func:`run_description`).
 
@@ -196,11 +191,3 @@ def load_run(logdir: str | Path, fix: str = "") -> tuple[Config, dict[str, Any]]
     if not isinstance(info.get("algo"), str):
         raise CoworldError(damaged(logdir / "run.json", "no algo: it does not say what was trained", fix))
     return config, info
-
-
-def run_description(info: Any) -> Any:
-    """A run description as read from ``run.json``, with a collector's older description (only its ``task``
-    and ``quality``, no ``algo``) completed as the online dreamerv2 run it is; anything else as it is."""
-    if isinstance(info, dict) and "algo" not in info and "task" in info and "quality" in info:
-        return {**collector_run_info(str(info["task"]), str(info.get("preset", "?"))), **info}
-    return info

@@ -115,7 +115,8 @@ def test_train_force_starts_a_run_folder_of_other_settings_over(tmp_path, toy_da
 
 
 def test_collects_hint_names_its_own_options(tmp_path, cli, one_line):
-    from coworld.training.run import collector_run_info, prepare_run_dir
+    from coworld.training.description import collector_run_info
+    from coworld.training.run import prepare_run_dir
 
     out = tmp_path / "d.h5"
     prepare_run_dir(

@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import io
 import json
+import subprocess
 import sys
 from dataclasses import replace
 from pathlib import Path
@@ -487,3 +488,18 @@ def test_an_unfinished_run_says_how_far_it_logged(tmp_path):
     assert "`pretraining` (coworld, seed 0): pretraining its source, 1,500 env steps logged" in unfinished
     assert "`target` (coworld, seed 1): 250 updates logged" in unfinished
     assert "`fresh` (coworld, seed 2): nothing logged yet" in unfinished
+
+
+def test_the_report_is_written_without_importing_torch(tmp_path):
+    """`coworld report` reads JSON and draws figures: torch's import (seconds) is not on its path."""
+    make_run(tmp_path, "cw", algo="coworld", source="toy_reach", target="toy_reach_shifted", seed=0, returns=[20.0],
+             records=[{"step": 100, "eval/return": 20.0, "target/coworld/target_value": 2.0,
+                       "target/coworld/source_value": 30.0}], coworld={"zeta": 1.0})  # fmt: skip
+    code = (
+        "import sys; from click.testing import CliRunner; from coworld.cli import main;"
+        f"out = CliRunner().invoke(main, ['report', {str(tmp_path)!r}]); assert out.exit_code == 0, out.output;"
+        "print('torch' in sys.modules)"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.split() == ["False"] and (tmp_path / "cap.png").exists()
