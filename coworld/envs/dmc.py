@@ -29,9 +29,9 @@ import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Literal
 
-import gymnasium as gym
 import numpy as np
 
+from coworld.envs.base import PixelEnv
 from coworld.envs.render import FrameRenderer, ensure_gl_backend
 
 if TYPE_CHECKING:
@@ -169,7 +169,7 @@ def _fmt(values: Any) -> str:
     return " ".join(f"{float(v):.9g}" for v in values)
 
 
-class DMCEnv(gym.Env[np.ndarray, np.ndarray]):
+class DMCEnv(PixelEnv):
     """A DMC walker or cheetah task seen through its tracking camera (camera 0).
 
     Observation: ``(S, S, 3)`` uint8 RGB frame after the step (``S`` = ``image_size``). Action: ``(6,)`` float32
@@ -181,16 +181,12 @@ class DMCEnv(gym.Env[np.ndarray, np.ndarray]):
         task: the :class:`~coworld.envs.registry.TaskSpec`; ``settings``: the resolved overrides.
     """
 
-    metadata = {"render_modes": ["rgb_array"]}
-    render_mode = "rgb_array"
-
     def __init__(self, task: TaskSpec, settings: EnvSettings, *, seed: int, variant: DMCVariant) -> None:
         ensure_gl_backend()
         from dm_control.rl import control
         from dm_control.suite import cheetah, walker
 
-        self.task = task
-        self.settings = settings
+        super().__init__(task, settings, task.action_size)
         xml, assets = model_xml(variant)
         if variant.domain == "walker":
             physics: Physics = walker.Physics.from_xml_string(xml, assets)
@@ -203,12 +199,7 @@ class DMCEnv(gym.Env[np.ndarray, np.ndarray]):
         # Frames per second of simulated time, one frame per agent step (walker 20, cheetah 50).
         self.metadata = {**self.metadata, "render_fps": 1.0 / (self._env.control_timestep() * settings.action_repeat)}
         size = settings.image_size
-        self.observation_space = gym.spaces.Box(0, 255, (size, size, 3), np.uint8)
-        self.action_space = gym.spaces.Box(-1.0, 1.0, (task.action_size,), np.float32)
         self._renderer = FrameRenderer(physics.model.ptr, camera=0, size=size, quality=settings.render_quality)
-        self._steps = 0
-        self._needs_reset = True
-        self._frame = np.zeros(self.observation_space.shape, np.uint8)
 
     @property
     def physics(self) -> Physics:
@@ -220,29 +211,18 @@ class DMCEnv(gym.Env[np.ndarray, np.ndarray]):
         if seed is not None:
             self._dm_task.random.seed(seed)
         self._env.reset()
-        self._steps = 0
-        self._needs_reset = False
+        self._start_episode()
         self._frame = self._renderer.render(self.physics.data.ptr)
         return self._frame, {}
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict]:
-        if self._needs_reset:
-            raise RuntimeError("call reset() before step() (at the start and after each truncated episode)")
-        action = np.asarray(action, np.float64)
-        if action.shape != self.action_space.shape:
-            raise ValueError(f"{self.task.name} takes actions of shape {self.action_space.shape}, got {action.shape}")
+        action = self._checked(action)
         reward = 0.0
         for _ in range(self.settings.action_repeat):
             reward += self._env.step(action).reward
-        self._steps += 1
-        truncated = self._steps >= self.settings.episode_length
-        self._needs_reset = truncated
+        truncated = self._count_step()
         self._frame = self._renderer.render(self.physics.data.ptr)
         return self._frame, reward, False, truncated, {}
-
-    def render(self) -> np.ndarray:
-        """The latest observation (``rgb_array``)."""
-        return self._frame.copy()
 
     def close(self) -> None:
         self._renderer.close()

@@ -19,9 +19,9 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, Any
 
-import gymnasium as gym
 import numpy as np
 
+from coworld.envs.base import PixelEnv
 from coworld.envs.render import FrameRenderer, ensure_gl_backend
 
 if TYPE_CHECKING:
@@ -45,7 +45,7 @@ ENV_NAMES: dict[str, str] = {
 """Our task name -> Meta-World environment name."""
 
 
-class MetaWorldEnv(gym.Env[np.ndarray, np.ndarray]):
+class MetaWorldEnv(PixelEnv):
     """A Meta-World task seen from the ``corner2`` camera.
 
     Observation: ``(S, S, 3)`` uint8 RGB frame. Action: ``(4,)`` float32 in [-1, 1], held for ``action_repeat``
@@ -56,16 +56,12 @@ class MetaWorldEnv(gym.Env[np.ndarray, np.ndarray]):
         task: the :class:`~coworld.envs.registry.TaskSpec`; ``settings``: the resolved overrides.
     """
 
-    metadata = {"render_modes": ["rgb_array"]}
-    render_mode = "rgb_array"
-
     def __init__(self, task: TaskSpec, settings: EnvSettings, *, seed: int) -> None:
         ensure_gl_backend()
         import mujoco
         from metaworld.env_dict import ALL_V3_ENVIRONMENTS
 
-        self.task = task
-        self.settings = settings
+        super().__init__(task, settings, task.action_size)
         sim: SawyerXYZEnv = ALL_V3_ENVIRONMENTS[ENV_NAMES[task.name]]()  # no gymnasium renderer: we draw frames
         # Fresh positions at each reset from sim.np_random (what the goal-observable constructors set up before
         # freezing them); these are Meta-World attributes without a public setter.
@@ -79,15 +75,9 @@ class MetaWorldEnv(gym.Env[np.ndarray, np.ndarray]):
         self.metadata = {**self.metadata, "render_fps": 1.0 / (sim.dt * settings.action_repeat)}
         camera = mujoco.mj_name2id(sim.model, mujoco.mjtObj.mjOBJ_CAMERA, CAMERA)
         sim.model.cam_pos[camera] = CAMERA_POS
-        size = settings.image_size
         self._renderer = FrameRenderer(
-            sim.model, camera=camera, size=size, quality=settings.render_quality, rotate_180=True
+            sim.model, camera=camera, size=settings.image_size, quality=settings.render_quality, rotate_180=True
         )
-        self.observation_space = gym.spaces.Box(0, 255, (size, size, 3), np.uint8)
-        self.action_space = gym.spaces.Box(-1.0, 1.0, (task.action_size,), np.float32)
-        self._steps = 0
-        self._needs_reset = True
-        self._frame = np.zeros(self.observation_space.shape, np.uint8)
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict]:
         """Start an episode with new object/goal positions; ``seed`` re-seeds their RNG (else it continues)."""
@@ -98,31 +88,20 @@ class MetaWorldEnv(gym.Env[np.ndarray, np.ndarray]):
             self.sim.seed(seed)
         self.sim.reset()
         mujoco.mj_forward(self.sim.model, self.sim.data)  # reset moves goal sites after the last forward pass
-        self._steps = 0
-        self._needs_reset = False
+        self._start_episode()
         self._frame = self._renderer.render(self.sim.data)
         return self._frame, {"success": False}
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict]:
-        if self._needs_reset:
-            raise RuntimeError("call reset() before step() (at the start and after each truncated episode)")
-        action = np.asarray(action, np.float32)
-        if action.shape != self.action_space.shape:
-            raise ValueError(f"{self.task.name} takes actions of shape {self.action_space.shape}, got {action.shape}")
+        action = self._checked(action, np.float32)
         reward, success = 0.0, False
         for _ in range(self.settings.action_repeat):
             _, step_reward, _, _, info = self.sim.step(action)
             reward += float(step_reward)
             success = success or bool(info["success"])
-        self._steps += 1
-        truncated = self._steps >= self.settings.episode_length
-        self._needs_reset = truncated
+        truncated = self._count_step()
         self._frame = self._renderer.render(self.sim.data)
         return self._frame, reward, False, truncated, {"success": success}
-
-    def render(self) -> np.ndarray:
-        """The latest observation (``rgb_array``)."""
-        return self._frame.copy()
 
     def close(self) -> None:
         self._renderer.close()

@@ -39,9 +39,9 @@ import logging
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-import gymnasium as gym
 import numpy as np
 
+from coworld.envs.base import PixelEnv
 from coworld.envs.render import FrameRenderer, ensure_gl_backend
 
 if TYPE_CHECKING:
@@ -103,7 +103,7 @@ def _quiet_ik_warnings() -> None:
         logger.addFilter(_IKConvergenceFilter())
 
 
-class RoboDeskEnv(gym.Env[np.ndarray, np.ndarray]):
+class RoboDeskEnv(PixelEnv):
     """One RoboDesk task seen from RoboDesk's camera.
 
     Observation: ``(S, S, 3)`` uint8 RGB frame. Action: ``(5,)`` float32 in [-1, 1], held for ``action_repeat``
@@ -115,17 +115,13 @@ class RoboDeskEnv(gym.Env[np.ndarray, np.ndarray]):
         task: the :class:`~coworld.envs.registry.TaskSpec`; ``settings``: the resolved overrides.
     """
 
-    metadata = {"render_modes": ["rgb_array"]}
-    render_mode = "rgb_array"
-
     def __init__(self, task: TaskSpec, settings: EnvSettings, *, seed: int) -> None:
         ensure_gl_backend()
         import mujoco
         from dm_control.mujoco import Physics
 
         _quiet_ik_warnings()
-        self.task = task
-        self.settings = settings
+        super().__init__(task, settings, task.action_size)
         self.robodesk_task = TASK_NAMES[task.name]
         self.physics: Physics = Physics.from_xml_path(str(ASSETS / "desk.xml"))
         # The inverse kinematics moves a second state of the same model, so it never disturbs the simulation.
@@ -147,11 +143,6 @@ class RoboDeskEnv(gym.Env[np.ndarray, np.ndarray]):
         self._renderer = FrameRenderer(
             self.physics.model.ptr, camera=camera, size=side, quality=settings.render_quality
         )
-        self.observation_space = gym.spaces.Box(0, 255, (size, size, 3), np.uint8)
-        self.action_space = gym.spaces.Box(-1.0, 1.0, (task.action_size,), np.float32)
-        self._steps = 0
-        self._needs_reset = True
-        self._frame = np.zeros(self.observation_space.shape, np.uint8)
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict]:
         """Start an episode with new object and arm positions; ``seed`` re-seeds their generator (else it continues)."""
@@ -182,8 +173,7 @@ class RoboDeskEnv(gym.Env[np.ndarray, np.ndarray]):
         physics.data.qvel[:arm] = 0.0
         physics.forward()
         self._ik_physics.data.qpos[:] = physics.data.qpos
-        self._steps = 0
-        self._needs_reset = False
+        self._start_episode()
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict]:
         reward, truncated, success = self.simulate(action)
@@ -192,11 +182,7 @@ class RoboDeskEnv(gym.Env[np.ndarray, np.ndarray]):
 
     def simulate(self, action: np.ndarray) -> tuple[float, bool, bool]:
         """:meth:`step` without drawing a frame: ``(reward, truncated, success)``."""
-        if self._needs_reset:
-            raise RuntimeError("call reset() before step() (at the start and after each truncated episode)")
-        action = np.asarray(action, np.float32)
-        if action.shape != self.action_space.shape:
-            raise ValueError(f"{self.task.name} takes actions of shape {self.action_space.shape}, got {action.shape}")
+        action = self._checked(action, np.float32)
         action = np.clip(action, -1.0, 1.0).astype(np.float64)
         physics = self.physics
         reward, success = 0.0, False
@@ -210,9 +196,7 @@ class RoboDeskEnv(gym.Env[np.ndarray, np.ndarray]):
             step_reward, step_success = task_reward(physics, self.robodesk_task)
             reward += step_reward
             success = success or step_success
-        self._steps += 1
-        truncated = self._steps >= self.settings.episode_length
-        self._needs_reset = truncated
+        truncated = self._count_step()
         return reward, truncated, success
 
     def _joint_targets(self, action: np.ndarray) -> np.ndarray:
@@ -235,10 +219,6 @@ class RoboDeskEnv(gym.Env[np.ndarray, np.ndarray]):
         view = self._renderer.render(self.physics.data.ptr)[top:bottom, left:right]
         size = self.settings.image_size
         return np.asarray(Image.fromarray(view).resize((size, size), resample=Image.Resampling.LANCZOS))
-
-    def render(self) -> np.ndarray:
-        """The latest observation (``rgb_array``)."""
-        return self._frame.copy()
 
     def close(self) -> None:
         self._renderer.close()

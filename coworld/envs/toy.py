@@ -29,8 +29,9 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any
 
-import gymnasium as gym
 import numpy as np
+
+from coworld.envs.base import PixelEnv
 
 if TYPE_CHECKING:
     from coworld.envs.spec import EnvSettings, TaskSpec
@@ -80,7 +81,7 @@ VARIANTS: dict[str, ToyVariant] = {
 """Each toy task's look and dynamics; the centre pair differs from the corner pair by its goal only."""
 
 
-class ToyReachEnv(gym.Env[np.ndarray, np.ndarray]):
+class ToyReachEnv(PixelEnv):
     """Move a dot to a fixed goal, from pixels.
 
     Observation: ``(S, S, 3)`` uint8 RGB frame (dot drawn with anti-aliased edges, so sub-pixel motion shows).
@@ -92,16 +93,12 @@ class ToyReachEnv(gym.Env[np.ndarray, np.ndarray]):
         task: the :class:`~coworld.envs.registry.TaskSpec`; ``settings``: the resolved overrides.
     """
 
-    metadata = {"render_modes": ["rgb_array"], "render_fps": 10}  # no simulated time: 5 s per 50-step episode
-    render_mode = "rgb_array"
+    metadata = {**PixelEnv.metadata, "render_fps": 10}  # no simulated time: 5 s per 50-step episode
 
     def __init__(self, task: TaskSpec, settings: EnvSettings, *, seed: int, variant: ToyVariant) -> None:
-        self.task = task
-        self.settings = settings
+        super().__init__(task, settings, variant.action_size)
         self._variant = variant
         size = settings.image_size
-        self.observation_space = gym.spaces.Box(0, 255, (size, size, 3), np.uint8)
-        self.action_space = gym.spaces.Box(-1.0, 1.0, (variant.action_size,), np.float32)
         self._start_rng = np.random.default_rng(seed)
         self._drift = np.array(variant.drift)
         self.goal = np.array(variant.goal)
@@ -113,9 +110,6 @@ class ToyReachEnv(gym.Env[np.ndarray, np.ndarray]):
         self._background[:] = variant.background
         self._blend(self._background, self.goal, GOAL_RADIUS, variant.goal_colour)
         self.position = np.zeros(2)
-        self._steps = 0
-        self._needs_reset = True
-        self._frame = np.zeros(self.observation_space.shape, np.uint8)
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict]:
         """Put the dot at a random start; ``seed`` re-seeds the start RNG (else it continues)."""
@@ -127,25 +121,18 @@ class ToyReachEnv(gym.Env[np.ndarray, np.ndarray]):
             if np.linalg.norm(start - self.goal) >= MIN_START_DISTANCE:
                 break
         self.position = start
-        self._steps = 0
-        self._needs_reset = False
+        self._start_episode()
         self._frame = self._draw()
         return self._frame, {}
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict]:
-        if self._needs_reset:
-            raise RuntimeError("call reset() before step() (at the start and after each truncated episode)")
-        action = np.asarray(action, np.float64)
-        if action.shape != self.action_space.shape:
-            raise ValueError(f"{self.task.name} takes actions of shape {self.action_space.shape}, got {action.shape}")
+        action = self._checked(action)
         velocity = np.clip(action[:2], -1.0, 1.0) * SPEED + self._drift
         reward = 0.0
         for _ in range(self.settings.action_repeat):
             self.position = np.clip(self.position + velocity, -LIMIT, LIMIT)
             reward += self.reward(self.position)
-        self._steps += 1
-        truncated = self._steps >= self.settings.episode_length
-        self._needs_reset = truncated
+        truncated = self._count_step()
         self._frame = self._draw()
         return self._frame, reward, False, truncated, {}
 
@@ -166,10 +153,6 @@ class ToyReachEnv(gym.Env[np.ndarray, np.ndarray]):
         action = np.zeros(self.action_space.shape, np.float32)
         action[:2] = wanted
         return action
-
-    def render(self) -> np.ndarray:
-        """The latest observation (``rgb_array``)."""
-        return self._frame.copy()
 
     def _draw(self) -> np.ndarray:
         frame = self._background.copy()

@@ -142,3 +142,27 @@ def test_every_dmc_and_toy_task_renders(name: str) -> None:
     assert frame.shape == (64, 64, 3) and frame.dtype == np.uint8
     assert frame.std() > 10 and len(np.unique(frame.reshape(-1, 3), axis=0)) > 20
     env.close()
+
+
+@pytest.mark.parametrize("name", ["toy_reach", "walker_walk", "mw_button_press", "robodesk_push_button"])
+def test_every_family_refuses_a_step_outside_an_episode_and_an_action_of_another_shape(name: str) -> None:
+    """Each family's env: no step before reset() nor after the time limit, actions of the action space's shape
+    only, an episode of exactly ``episode_length`` steps truncated (never terminated), and ``render()`` a copy of
+    the latest frame."""
+    env = make(name, seed=0, episode_length=3).unwrapped
+    action = np.zeros(env.action_space.shape, np.float32)
+    with pytest.raises(RuntimeError, match="call reset"):
+        env.step(action)
+    env.reset()
+    with pytest.raises(ValueError, match=rf"{name} takes actions of shape \({TASKS[name].action_size},\)"):
+        env.step(np.zeros(TASKS[name].action_size + 1, np.float32))
+    ends = [env.step(action)[2:4] for _ in range(3)]
+    assert ends == [(False, False), (False, False), (False, True)]
+    with pytest.raises(RuntimeError, match="call reset"):
+        env.step(action)
+    frame = env.render()
+    frame[:] = 0
+    assert env.render().any()  # the env's own frame is untouched
+    env.reset()
+    assert env.step(action)[3] is False  # a new episode runs
+    env.close()
