@@ -10,7 +10,7 @@ from typing import Any
 import click
 
 from coworld import interrupt
-from coworld.commands.options import count_type, input_path, output_file, output_folder
+from coworld.commands.options import Number, count_type, input_path, output_file, output_folder
 from coworld.data import CODECS, QUALITIES, merge_datasets, open_dataset, verify_dataset
 from coworld.text import count
 
@@ -28,7 +28,7 @@ def dataset() -> None:
 @click.argument("path", type=input_path())
 @click.option(
     "--discount",
-    type=click.FloatRange(0, 1, min_open=True),
+    type=Number(0, 1, min_open=True),
     default=0.99,
     show_default=True,
     help="gamma of the value line: the critic's, actor_critic.discount (tiny and cpu presets 0.99, paper 0.995).",
