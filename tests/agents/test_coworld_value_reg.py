@@ -46,7 +46,7 @@ def test_max_min_term_pulls_the_target_critic_down_to_a_lower_source_critic(toy_
             agent.target.load_state_dict(init)
             torch.manual_seed(1)
             batches = data.sampler(config.train.batch_size, config.train.seq_len, seed=1)
-            for _ in range(150):
+            for _ in range(75):
                 metrics = agent.train_target(next(batches))
             active[value_reg] = metrics.get("target/coworld/maxmin_active")
             result, _ = evaluate(agent, "toy_reach", episodes=4, seed=7, discount=0.99)
