@@ -92,7 +92,7 @@ def _markdown(
     root: Path, out: Path, results: list[RunResult], figures: list[tuple[str, str]], skipped: list[str]
 ) -> str:
     from coworld.report import tables
-    from coworld.report.diagnostics import diagnostics_table
+    from coworld.report.diagnostics import diagnostics_table, world_model_table
 
     finished = [r for r in results if r.final_return is not None]
     collectors = _collectors(results)
@@ -171,6 +171,19 @@ def _markdown(
             " critics' mean values there; over the run's logs, the last log in brackets.",
             "",
             terms,
+            "",
+        ]
+    models = world_model_table(results)
+    if models:
+        lines += [
+            "## Target world models",
+            "",
+            "Each world-model run's model of the target dataset over its updates there: the image and reward"
+            " losses (negative log-likelihoods) and the KL between posterior and prior; first → last log, the run's"
+            " mean in brackets. CoWorld's alignment (Eq. 3) pulls its target latents toward the source's: what"
+            " that costs its model of the target frames shows against offline DreamerV2's.",
+            "",
+            models,
             "",
         ]
     if figures:

@@ -12,6 +12,10 @@
   value over the run's ``zeta`` (:attr:`RunResult.zeta`), the level the term holds the target critic under.
 
 A term that is switched off logs nothing and shows as a dash.
+
+Beside them, every world-model run's target world model (:func:`world_model_table`): its image and reward losses and
+its KL on the target dataset over its target updates, where what Eq. 3's alignment costs the model of the target
+frames shows against offline DreamerV2's.
 """
 
 from __future__ import annotations
@@ -22,7 +26,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from coworld.report.results import RunResult, read_run_metrics
+from coworld.report.results import ONLINE_ALGO, RunResult, read_run_metrics
 from coworld.report.tables import label_order
 
 ALIGN = "target/coworld/align_kl"
@@ -102,6 +106,36 @@ def diagnostics_table(results: Sequence[RunResult]) -> str:
         ]
         lines.append(f"| {r.source} → {r.target} | {r.label} | {r.seed} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
+
+
+WORLD_MODEL_TERMS = (("image", "image loss"), ("reward", "reward loss"), ("kl", "KL"))
+"""The world model's logged terms (``wm/<name>``) the world-model table shows."""
+TARGET_UNITS = ("update", "target_update")
+"""The units of the logs of updates on the target dataset (an offline run's, a CoWorld run's target phases)."""
+
+
+def target_world_model(records: Sequence[Mapping[str, Any]], name: str) -> Series | None:
+    """The target world model's ``wm/<name>`` over a run's updates on the target dataset (CoWorld logs its target
+    agent's under ``target/``; a source's pretraining, logged by env step, is left out); None where not logged."""
+    on_target = [r for r in records if r.get("unit") in TARGET_UNITS]
+    return series(on_target, f"target/wm/{name}") or series(on_target, f"wm/{name}")
+
+
+def world_model_table(results: Sequence[RunResult]) -> str:
+    """A markdown table, one row per run whose target world model logged its losses; '' when there is none."""
+    runs = [r for r in results if r.algo != ONLINE_ALGO]
+    order = {label: i for i, label in enumerate(label_order(runs))}
+    rows = []
+    for r in sorted(runs, key=lambda r: (r.target, order[r.label], r.seed)):
+        terms = [target_world_model(read_run_metrics(Path(r.run_dir)), name) for name, _ in WORLD_MODEL_TERMS]
+        if any(terms):
+            pair = f"{r.source} → {r.target}" if r.source else r.target
+            cells = [f"{_arrow(t)} ({t.mean:.3g})" if t else "–" for t in terms]
+            rows.append(f"| {pair} | {r.label} | {r.seed} | " + " | ".join(cells) + " |")
+    if not rows:
+        return ""
+    names = " | ".join(f"{title}: first → last (run)" for _, title in WORLD_MODEL_TERMS)
+    return "\n".join([f"| pair | algorithm | seed | {names} |", "|---|---|---:|---|---|---|", *rows])
 
 
 def cap_curve(records: Sequence[Mapping[str, Any]], zeta: float) -> list[tuple[int, float, float]]:

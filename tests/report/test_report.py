@@ -475,6 +475,23 @@ def test_a_log_axis_labels_its_minor_ticks_at_2_3_and_5_only():
     assert labels == ["2", "3", "", "5", "", "20", "30", "", "0.5"]
 
 
+def test_the_world_model_table_reads_each_runs_target_model_not_a_sources_pretraining(tmp_path):
+    """Offline DreamerV2 logs its world model as ``wm/*`` by update; CoWorld its target's as ``target/wm/*`` by
+    target update, beside its source's pretraining (``wm/*`` by env step), which the table leaves out."""
+    target = "toy_reach_shifted"
+    make_run(tmp_path, "dv", algo="dreamerv2", target=target, seed=0, returns=[1.0], records=[
+        {"step": s, "unit": "update", "wm/image": image, "wm/reward": 1.0, "wm/kl": kl}
+        for s, image, kl in ((100, 9.0, 2.0), (200, 6.0, 3.0), (300, 3.0, 4.0))])  # fmt: skip
+    make_run(tmp_path, "cw", algo="coworld", source="toy_reach", target=target, seed=1, returns=[1.0], records=[
+        {"step": 500, "unit": "source_env_step", "wm/image": 99.0, "wm/reward": 99.0, "wm/kl": 99.0},
+        {"step": 100, "unit": "target_update", "target/wm/image": 12.0, "target/wm/reward": 2.0},
+        {"step": 200, "unit": "target_update", "target/wm/image": 8.0, "target/wm/reward": 1.0}])  # fmt: skip
+    write_report(tmp_path)
+    text = (tmp_path / "report.md").read_text().split("## Target world models", 1)[1]
+    assert f"| {target} | dreamerv2 | 0 | 9 → 3 (6) | 1 → 1 (1) | 2 → 4 (3) |" in text
+    assert f"| toy_reach → {target} | coworld | 1 | 12 → 8 (10) | 2 → 1 (1.5) | – |" in text
+
+
 def test_an_unfinished_run_says_how_far_it_logged(tmp_path):
     """Target updates where it has made some; a CoWorld run still pretraining its source, its env steps there."""
     target = "toy_reach_shifted"
