@@ -6,12 +6,11 @@ and prints one JSON line per measurement as soon as it has it, so a part cut off
 it finished:
 
 * ``update MODE`` (``fp32-eager``, ``bf16-eager``, ``fp32-compile``, ``bf16-compile``; ``fp32-phases``: eager with
-  the CPU path's decoder-phase forms forced onto the GPU, against the reference that ``fp32-eager`` runs;
-  ``fp32-graphs``: compiled with ``compile_mode=reduce-overhead``, CUDA graphs): DreamerV2's update, then
-  CoWorld's target update and source update (with the relabelled-reward pass over a target batch), each on a
-  random batch of the preset's size. Per update: the warm-up's seconds (with compile, the compilation), the
-  median and min seconds of the timed updates (CUDA synchronised before each clock read), and the peak GPU
-  memory allocated and reserved by torch, counted from the agent's construction.
+  the CPU path's decoder-phase forms forced onto the GPU, against the reference that ``fp32-eager`` runs):
+  DreamerV2's update, then CoWorld's target update and source update (with the relabelled-reward pass over a
+  target batch), each on a random batch of the preset's size. Per update: the warm-up's seconds (with compile,
+  the compilation), the median and min seconds of the timed updates (CUDA synchronised before each clock read),
+  and the peak GPU memory allocated and reserved by torch, counted from the agent's construction.
 * ``act``: one agent step of ``walker_walk`` (its simulator steps and a 64 x 64 render, on this machine), and
   the paper-size agent's policy for one environment on the device, over whole episodes.
 
@@ -26,6 +25,8 @@ Usage::
 
     python benchmarks/paper_gpu.py --json OUT/paper_gpu.json          # on a CUDA machine
     python benchmarks/paper_gpu.py --device cpu --preset tiny --modes fp32-eager --updates 2   # a dry run
+    # the report again from saved records, the act part's from another machine's (where it could not run)
+    python benchmarks/paper_gpu.py --device cpu --records A.json --act-from B.json
 """
 
 from __future__ import annotations
@@ -53,7 +54,7 @@ from coworld.config import PRESETS, Config, make_config  # noqa: E402
 from coworld.devices import resolve_device  # noqa: E402
 from coworld.storage import write_text_atomically  # noqa: E402
 
-MODES = ("bf16-eager", "fp32-eager", "fp32-phases", "bf16-compile", "fp32-compile", "fp32-graphs")
+MODES = ("bf16-eager", "fp32-eager", "fp32-phases", "bf16-compile", "fp32-compile")
 UPDATES = ("dreamerv2", "coworld target", "coworld source")
 
 
@@ -124,10 +125,7 @@ def time_update(
 
 def mode_config(args: argparse.Namespace, mode: str) -> Config:
     precision, how = mode.split("-")
-    settings = {"device": args.device, "precision": precision, "compile": how in ("compile", "graphs")}
-    if how == "graphs":
-        settings["compile_mode"] = "reduce-overhead"
-    return make_config(args.preset, settings)
+    return make_config(args.preset, {"device": args.device, "precision": precision, "compile": how == "compile"})
 
 
 def with_phases(agent: Any) -> Any:
@@ -249,6 +247,10 @@ def run_part(args: argparse.Namespace, part: list[str], limit: float) -> list[di
     return records
 
 
+def _saved(path: str) -> list[dict[str, Any]]:
+    return json.loads(Path(path).read_text())["records"]
+
+
 def forwarded(args: argparse.Namespace) -> list[str]:
     return [
         f"--preset={args.preset}",
@@ -311,6 +313,8 @@ def main() -> None:
     parser.add_argument("--compile-limit", type=float, default=300.0, help="seconds each compiled mode may run")
     parser.add_argument("--budget", type=float, default=3600.0, help="seconds the whole run may take (the report kept)")
     parser.add_argument("--json", help="also write every record and the ETAs to this file")
+    parser.add_argument("--records", help="measure nothing: the report from this earlier --json file's records")
+    parser.add_argument("--act-from", help="the act part's records from this earlier --json file, not measured")
     parser.add_argument("--worker", nargs="+", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.worker:
@@ -324,13 +328,18 @@ def main() -> None:
     def limit(most: float) -> float:
         return max(0.0, min(most, deadline - time.perf_counter()))
 
-    records: list[dict[str, Any]] = []
+    borrowed = [r for r in _saved(args.act_from) if r["part"] == "act"] if args.act_from else None
+    if args.records:
+        records = [r for r in _saved(args.records) if borrowed is None or r["part"] != "act"] + (borrowed or [])
+        report(args, records)
+        return
+    records = []
     eager = [m for m in modes if m.endswith(("eager", "phases"))]
     for mode in eager:
         records += run_part(args, ["update", mode], limit(args.limit))
         if not any(r.get("mode") == mode for r in records):
             sys.exit(f"{mode} measured nothing: stopping before the longer parts")
-    records += run_part(args, ["act"], limit(args.limit))
+    records += borrowed if borrowed is not None else run_part(args, ["act"], limit(args.limit))
     for mode in (m for m in modes if m not in eager):
         if limit(args.compile_limit) < 30:
             print(f"== update {mode}: skipped, the budget is spent", flush=True)

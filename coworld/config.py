@@ -567,16 +567,21 @@ class Config:
     compile: bool = False
     """torch.compile the reference world model's loss and the imagination rollout, each as one graph
     (``fullgraph``), and the networks acting calls. Shapes are static: a batch of another size compiles anew. The
-    compiled run takes the reference path (``train.backend``); its cost and gain per device are in
+    compiled run takes the reference path (``train.backend``). On a GPU it pays for its compilation (minutes, once
+    per process) within the first few thousand updates of the paper preset; its cost and gain per device are in
     benchmarks/RESULTS.md."""
-    compile_mode: Annotated[str, OneOf(("default", "reduce-overhead", "max-autotune"))] = "default"
-    """torch.compile's ``mode`` where ``compile`` is on: 'reduce-overhead' replays each compiled graph as a CUDA
-    graph on a GPU (its launches at once), 'max-autotune' also times kernel choices."""
+    compile_mode: Annotated[str, OneOf(("default", "max-autotune-no-cudagraphs"))] = "default"
+    """torch.compile's ``mode`` where ``compile`` is on: 'max-autotune-no-cudagraphs' also times kernel choices.
+    The modes that replay CUDA graphs ('reduce-overhead', 'max-autotune') are refused: their graphs overwrite the
+    world model's posterior states before imagination reads them (benchmarks/RESULTS.md, "GPU")."""
     drqbc: DrqBcConfig = field(default_factory=DrqBcConfig)
     penalty: PenaltyConfig = field(default_factory=PenaltyConfig)
     lompo: LompoConfig = field(default_factory=LompoConfig)
     ewc: EwcConfig = field(default_factory=EwcConfig)
 
+
+CUDA_GRAPH_MODES = ("reduce-overhead", "max-autotune")
+"""torch.compile modes that replay CUDA graphs: on the paper preset's update they raised (an H200, torch 2.11)."""
 
 PRESETS: dict[str, dict[str, Any]] = {
     # The paper's Table 3, for a GPU.
@@ -804,6 +809,11 @@ def validate(config: Config) -> None:
 
     Raises :class:`ConfigError` naming the first bad key, its value and what it may be.
     """
+    if config.compile_mode in CUDA_GRAPH_MODES:
+        raise ConfigError(
+            f"config key compile_mode={config.compile_mode} replays CUDA graphs, which overwrite the world model's"
+            " posterior states before imagination reads them; use compile_mode=default"
+        )
     for dotted, value, constraint in _constrained_values(config):
         if not constraint.contains(value):
             raise ConfigError(f"config key {dotted}={value!r} is out of range: it must be {constraint}")
