@@ -52,6 +52,17 @@ def test_info_values_are_each_steps_discounted_return_to_its_episodes_end(
     assert line.split()[6:8] == ["max", f"{np.max(values):.2f}"] and "gamma 0.9)" in line
 
 
+def test_info_discount_help_names_each_presets_critic_discount() -> None:
+    """The help's figures are written out (the command does not import the config); they follow the presets."""
+    from coworld.config import PRESETS, make_config
+
+    info = main.get_command(None, "dataset").get_command(None, "info")
+    option = next(p for p in info.params if p.name == "discount")
+    discount = {preset: make_config(preset).actor_critic.discount for preset in PRESETS}
+    assert set(discount) == {"tiny", "cpu", "paper"} and discount["tiny"] == discount["cpu"] == option.default
+    assert f"tiny and cpu presets {discount['cpu']}, paper {discount['paper']}" in option.help
+
+
 def test_info_json_is_the_summary(dataset_path: Path) -> None:
     result = CliRunner().invoke(main, ["dataset", "info", "--json", str(dataset_path)])
     assert result.exit_code == 0, result.output
