@@ -285,7 +285,7 @@ def report(args: argparse.Namespace, records: list[dict[str, Any]]) -> dict[str,
         print(f"act: {what:<14}{r['step_s'] * 1000:>8.2f} ms per agent step")
     out: dict[str, Any] = {"records": records, "eta": {}}
     if "env" not in acts or "policy train" not in acts:
-        print("no ETA: the act part did not finish (--records this file --act-from another run's takes that one's)")
+        print("no ETA: the act part did not finish (--records FILE --act-from OTHER reports with another run's)")
         return out
     for mode, t in timed.items():
         if set(UPDATES) <= set(t):
