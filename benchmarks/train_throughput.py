@@ -44,7 +44,9 @@ update autocasts to float16 on any device, which on a CPU is ten times slower). 
 checkouts, not copied; ``--peer-python`` names an interpreter with torch and ruamel.yaml (and, for r2dreamer,
 hydra-core and tensordict). ``--flops`` has every side count the floating-point operations of one more update, untimed
 (PyTorch's ``FlopCounterMode``: matrix products and convolutions, forward and backward): on our sides after the
-warm-up (with ``--warmup 0`` the counted update is the first); on the peers' before it.
+warm-up (with ``--warmup 0`` the counted update is the first); on the peers' before it. ``--ops`` has our sides
+count the ATen operations of one more update, untimed (:class:`OpCounter`): in eager mode on a GPU each one not a
+view is a kernel launch or more, which is what bounds an update there.
 """
 
 from __future__ import annotations
@@ -65,6 +67,7 @@ from typing import Any
 import numpy as np
 import torch
 from learning_side_by_side import REFERENCE_NESTED, REFERENCE_SETTINGS
+from torch.utils._python_dispatch import TorchDispatchMode
 from torch.utils.flop_counter import FlopCounterMode
 
 from coworld.agents.dreamerv2 import DreamerV2
@@ -72,6 +75,19 @@ from coworld.config import PRESETS, Config, make_config
 from coworld.devices import resolve_device
 from coworld.models.actor_critic import flatten_states
 from coworld.models.networks import frozen_parameters
+
+
+class OpCounter(TorchDispatchMode):
+    """Counts the ATen operations dispatched inside it: ``total`` and ``views`` (those that only view memory)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.total = self.views = 0
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):  # noqa: ANN001, ANN204
+        self.total += 1
+        self.views += bool(func.is_view)
+        return func(*args, **(kwargs or {}))
 
 
 @dataclass(frozen=True)
@@ -203,7 +219,7 @@ def worker(args: argparse.Namespace) -> None:
         updates["coworld target"] = lambda: pair.train_target(batch)
         updates["coworld source"] = lambda: pair.train_source(batch)
     out: dict[str, object] = {"coworld": str(Path(coworld.__file__).parent.parent)}
-    warmup_s, flops = {}, {}
+    warmup_s, flops, ops = {}, {}, {}
     for name, update in updates.items():
         start = time.perf_counter()
         for _ in range(args.warmup):
@@ -213,13 +229,17 @@ def worker(args: argparse.Namespace) -> None:
             with FlopCounterMode(display=False) as counter:
                 update()
             flops[name] = counter.get_total_flops()
+        if args.ops:  # and one more, its operations counted, not timed
+            with OpCounter() as counter:
+                update()
+            ops[name] = [counter.total, counter.views]
         times = []
         for _ in range(args.updates):
             start = time.perf_counter()
             update()
             times.append(time.perf_counter() - start)
         out[name] = times
-    print(json.dumps({**out, "warmup_s": warmup_s, "flops": flops}))
+    print(json.dumps({**out, "warmup_s": warmup_s, "flops": flops, "ops": ops}))
 
 
 _PEER_LOOP = textwrap.dedent(
@@ -482,6 +502,7 @@ def interleave(args: argparse.Namespace) -> None:
     common += ["--preset", args.preset, "--device", args.device, "--algo", args.algo]
     common += ["--action-size", str(args.action_size)] + [f"--set={item}" for item in args.set]
     common += ["--flops"] if args.flops else []
+    common += ["--ops"] if args.ops else []
     rows = []
     for block in range(args.blocks):
         for label, tree, malloc in sides:
@@ -497,14 +518,15 @@ def interleave(args: argparse.Namespace) -> None:
             stdout = subprocess.run(command, env=env, cwd=tree, capture_output=True, check=True, text=True).stdout
             result = json.loads(stdout.strip().splitlines()[-1])  # the peer prints its model's shapes first
             assert Path(result.pop("coworld")) == tree, "the worker imported another checkout"
-            warmup_s, flops = result.pop("warmup_s", {}), result.pop("flops", {})
+            warmup_s, flops, ops = result.pop("warmup_s", {}), result.pop("flops", {}), result.pop("ops", {})
             for name, times in result.items():
                 rows.append((block, label, name, load, min(times), statistics.median(times)))
                 print(
                     f"block {block} {label:<20}{name:<16} load {load:5.2f}  min {min(times):.3f} s  median "
                     f"{statistics.median(times):.3f} s"
                     + (f"  (warm-up {warmup_s[name]:.1f} s)" if name in warmup_s else "")
-                    + (f"  {flops[name] / 1e9:.1f} GFLOP" if name in flops else ""),
+                    + (f"  {flops[name] / 1e9:.1f} GFLOP" if name in flops else "")
+                    + (f"  {ops[name][0]:,} ATen ops ({ops[name][1]:,} views)" if name in ops else ""),
                     flush=True,
                 )
     print(f"\n{'update':<16}{'side':<20}{'min s (best block)':>20}{'median of block medians':>25}{'x base':>8}")
@@ -637,6 +659,11 @@ def main() -> None:
         action="store_true",
         help="with --interleave, each side also counts the floating-point operations of one update "
         "(torch.utils.flop_counter: matrix products and convolutions, forward and backward)",
+    )
+    parser.add_argument(
+        "--ops",
+        action="store_true",
+        help="with --interleave, our sides also count the ATen operations of one update (views among them)",
     )
     parser.add_argument("--profile", action="store_true", help="torch.profiler table of whole DreamerV2 updates")
     parser.add_argument(

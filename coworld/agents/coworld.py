@@ -168,7 +168,7 @@ class CoWorld:
         with torch.no_grad():
             if self.config.coworld.align_on == "embedding":
                 return path.embed(batch)
-            post, _, _ = path.observe(batch, generator=generator)
+            post, _, _ = path.observe(batch, generator=generator, priors=False)
             return post["logits"]
 
     # -- the source agent's update (Alg. 1 lines 16-21) -----------------------------------------------------------
@@ -181,7 +181,7 @@ class CoWorld:
             target_batch = self.source.to_batch(next(self.target_batches))
 
             def extra(source_batch: dict[str, Tensor], aux: dict[str, Any]) -> dict[str, Tensor]:
-                post, _, _ = self.source.model_path.observe(target_batch)
+                post, _, _ = self.source.model_path.observe(target_batch, priors=False)
                 head = self.source.world_model.reward_head(self.source.world_model.features(post))
                 label = relabel_reward(head.mean, target_batch["reward"].float(), cfg.k, cfg.relabel)
                 seen["relabel"] = target_term = source_reward_loss_on_target(head, label).mean()

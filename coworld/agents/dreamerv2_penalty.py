@@ -61,7 +61,7 @@ class PenaltyDreamerV2(DreamerV2):
             metrics.update(self.train_ensemble(post))
         else:
             with torch.no_grad(), self._autocast():
-                post, _, _ = self.model_path.observe(batch_t)
+                post, _, _ = self.model_path.observe(batch_t, priors=False)
             metrics = self.train_policy({key: value.detach() for key, value in post.items()}, batch_t)
         self.updates += 1
         return metrics

@@ -102,7 +102,7 @@ class Lompo(PenaltyDreamerV2):
         for _ in range(c.horizon):
             feat = wm.features(state).float()
             action = self.actor_critic.actor(feat).sample().clamp(-1.0, 1.0)
-            deter = wm.rssm.img_step(state, action, sample=False)["deter"]
+            deter = wm.rssm.recurrent(state, action)
             heads = self.ensemble(deter)  # (K, n, S, C)
             logits = heads[torch.randint(heads.shape[0], (n,), device=self.device), rows]
             stoch = OneHotCategorical(logits, normalised=True).rsample()

@@ -96,7 +96,19 @@ def _model_key(world_model: WorldModel) -> tuple:
     methods = tuple(
         getattr(type(module), name, None)
         for module in (world_model, world_model.rssm)
-        for name in ("loss", "image_nll", "observe", "obs_step", "img_step", "encode", "features", "_logits")
+        for name in (
+            "loss",
+            "image_nll",
+            "observe",
+            "obs_step",
+            "img_step",
+            "recurrent",
+            "transition",
+            "representation",
+            "encode",
+            "features",
+            "_logits",
+        )
     )
     return repr(world_model), world_model.config, code, methods, world_model_module.preprocess_image
 

@@ -24,8 +24,12 @@ class ModelPath(Protocol):
     def embed(self, batch: dict[str, Tensor]) -> Tensor: ...
 
     def observe(
-        self, batch: dict[str, Tensor], state: State | None = None, generator: torch.Generator | None = None
-    ) -> tuple[State, State, Tensor]: ...
+        self,
+        batch: dict[str, Tensor],
+        state: State | None = None,
+        generator: torch.Generator | None = None,
+        priors: bool = True,
+    ) -> tuple[State, State | None, Tensor]: ...
 
     def loss(
         self, batch: dict[str, Tensor], generator: torch.Generator | None = None
@@ -48,9 +52,13 @@ class ReferencePath:
         return self.world_model.encode(batch["image"])
 
     def observe(
-        self, batch: dict[str, Tensor], state: State | None = None, generator: torch.Generator | None = None
-    ) -> tuple[State, State, Tensor]:
-        return self.world_model.observe(batch, state, generator)
+        self,
+        batch: dict[str, Tensor],
+        state: State | None = None,
+        generator: torch.Generator | None = None,
+        priors: bool = True,
+    ) -> tuple[State, State | None, Tensor]:
+        return self.world_model.observe(batch, state, generator, priors)
 
     def loss(
         self, batch: dict[str, Tensor], generator: torch.Generator | None = None

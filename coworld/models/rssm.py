@@ -86,21 +86,35 @@ class RSSM(nn.Module):
         """The categorical distribution of ``z`` in ``state`` (batch ``(..., S)``, ``K`` classes)."""
         return OneHotCategorical(state["logits"], normalised=True)
 
-    def img_step(
-        self, prev_state: State, prev_action: Tensor, sample: bool = True, noise: Tensor | None = None
-    ) -> State:
-        """Prior step: ``(N, ...)`` state and ``(N, A)`` action to the prior state at the next step ``(N, ...)``.
+    def recurrent(self, prev_state: State, prev_action: Tensor) -> Tensor:
+        """The recurrent model: ``(N, ...)`` state and ``(N, A)`` action to the next ``deter (N, D)``.
 
         An action narrower than :attr:`action_size` is zero-padded at the end: a CoWorld source model is built for
-        the wider of the source's and the target's action spaces and reads both (:mod:`coworld.agents.coworld`).
-        ``noise (N, S, K)``: the sample's exponential noise (see :meth:`OneHotCategorical.rsample`), drawn here
-        when None."""
+        the wider of the source's and the target's action spaces and reads both (:mod:`coworld.agents.coworld`)."""
         prev_action = pad_action(prev_action, self.action_size)
         stoch = prev_state["stoch"].reshape(prev_action.shape[0], -1)
         x = self.img_in(torch.cat([stoch, prev_action.to(stoch.dtype)], dim=-1))
-        deter = self.cell(x, prev_state["deter"])
+        return self.cell(x, prev_state["deter"])
+
+    def transition(self, deter: Tensor, sample: bool = True, noise: Tensor | None = None) -> State:
+        """The transition model (the prior) at ``deter (N, D)``: the state ``(N, ...)`` it draws ``z`` into.
+        ``noise (N, S, K)``: the sample's exponential noise (see :meth:`OneHotCategorical.rsample`), drawn here
+        when None."""
         logits = self._logits(self.img_out(deter))
         return {"deter": deter, "logits": logits, "stoch": self._sample(logits, sample, noise)}
+
+    def representation(self, deter: Tensor, embed: Tensor, sample: bool = True, noise: Tensor | None = None) -> State:
+        """The representation model (the posterior) at ``deter (N, D)`` with the new observation's embedding
+        ``(N, E)``; ``noise`` as :meth:`transition`'s."""
+        logits = self._logits(self.obs_out(torch.cat([deter, embed.to(deter.dtype)], dim=-1)))
+        return {"deter": deter, "logits": logits, "stoch": self._sample(logits, sample, noise)}
+
+    def img_step(
+        self, prev_state: State, prev_action: Tensor, sample: bool = True, noise: Tensor | None = None
+    ) -> State:
+        """Prior step: ``(N, ...)`` state and ``(N, A)`` action to the prior state at the next step ``(N, ...)``
+        (:meth:`recurrent`, then :meth:`transition` with ``noise (N, S, K)``)."""
+        return self.transition(self.recurrent(prev_state, prev_action), sample, noise)
 
     def obs_step(
         self,
@@ -110,22 +124,23 @@ class RSSM(nn.Module):
         is_first: Tensor | None = None,
         sample: bool = True,
         noise: Tensor | None = None,
-    ) -> tuple[State, State]:
+        prior: bool = True,
+    ) -> tuple[State, State | None]:
         """Posterior step with the embedding ``(N, E)`` of the new observation; returns ``(post, prior)``.
 
         Where ``is_first (N,)`` is true the previous state and action are zeroed first (a new episode starts).
         ``noise (2, N, S, K)``: the exponential noise of the prior's and the posterior's draws (see
-        :meth:`OneHotCategorical.rsample`), drawn here when None.
+        :meth:`OneHotCategorical.rsample`), drawn here when None. ``prior=False`` (a caller that reads only the
+        posterior) skips the transition model and returns None in its place; the posterior is the same.
         """
         if is_first is not None:
             keep = (~is_first.bool()).to(prev_action.dtype)
             prev_state = {k: v * keep.reshape(-1, *([1] * (v.ndim - 1))) for k, v in prev_state.items()}
             prev_action = prev_action * keep[:, None]
         prior_noise, post_noise = (None, None) if noise is None else noise
-        prior = self.img_step(prev_state, prev_action, sample, prior_noise)
-        logits = self._logits(self.obs_out(torch.cat([prior["deter"], embed.to(prior["deter"].dtype)], dim=-1)))
-        post = {"deter": prior["deter"], "logits": logits, "stoch": self._sample(logits, sample, post_noise)}
-        return post, prior
+        deter = self.recurrent(prev_state, prev_action)
+        prior_state = self.transition(deter, sample, prior_noise) if prior else None  # drawn first, as ever
+        return self.representation(deter, embed, sample, post_noise), prior_state
 
     def observe(
         self,
@@ -134,25 +149,28 @@ class RSSM(nn.Module):
         is_first: Tensor,
         state: State | None = None,
         generator: torch.Generator | None = None,
-    ) -> tuple[State, State]:
+        priors: bool = True,
+    ) -> tuple[State, State | None]:
         """Run the posterior over sequences; returns ``(post, prior)`` with batch shape ``(B, T)``.
 
         ``embed (B, T, E)``; ``action (B, T, A)`` is the action that led to step ``t``; ``is_first (B, T)``
         resets the recurrent state; ``state`` (batch ``(B,)``) is the state before step 0 (zeros if None);
         ``generator`` draws the categorical samples' noise (torch's default generator if None): one
         :func:`exponential_noise` call ``(T, 2, B, S, K)`` for the prior's and the posterior's draws of every step.
+        ``priors=False`` (a caller that reads only the posterior) skips the transition model (``prior`` is None);
+        the same noise is drawn, so the posterior is the one ``priors=True`` gives.
         """
         batch, length = action.shape[:2]
         if state is None:
             state = self.initial(batch, action.device)
         noise = exponential_noise((length, 2, batch, self.stoch, self.classes), action.device, generator)
         posts: list[State] = []
-        priors: list[State] = []
+        prior_states: list[State | None] = []
         for t in range(length):
-            state, prior = self.obs_step(state, action[:, t], embed[:, t], is_first[:, t], True, noise[t])
+            state, prior = self.obs_step(state, action[:, t], embed[:, t], is_first[:, t], True, noise[t], priors)
             posts.append(state)
-            priors.append(prior)
-        return stack_states(posts), stack_states(priors)
+            prior_states.append(prior)
+        return stack_states(posts), (stack_states(prior_states) if priors else None)
 
     def _logits(self, raw: Tensor) -> Tensor:
         """Raw ``(N, S * K)`` outputs to normalised log-probabilities ``(N, S, K)``, float32, with unimix."""

@@ -124,17 +124,22 @@ class WorldModel(nn.Module):
         return self.rssm.features(state)
 
     def observe(
-        self, batch: dict[str, Tensor], state: State | None = None, generator: torch.Generator | None = None
-    ) -> tuple[State, State, Tensor]:
+        self,
+        batch: dict[str, Tensor],
+        state: State | None = None,
+        generator: torch.Generator | None = None,
+        priors: bool = True,
+    ) -> tuple[State, State | None, Tensor]:
         """Encode a batch's images and run the posterior over it.
 
         Returns ``(post, prior, embed)``: states with batch ``(B, T)`` (``deter (B, T, D)``,
         ``logits``/``stoch (B, T, S, K)``) and the embeddings ``(B, T, E)``. The recurrent state and the previous
         action are zeroed where ``is_first``; ``state`` (batch ``(B,)``) continues from an earlier chunk; ``generator``
-        draws the latent samples' noise (torch's default generator if None).
+        draws the latent samples' noise (torch's default generator if None). ``priors=False``: ``prior`` is None
+        (not computed; the posterior is the same, :meth:`RSSM.observe`).
         """
         embed = self.encode(batch["image"])
-        post, prior = self.rssm.observe(embed, batch["action"], batch["is_first"], state, generator)
+        post, prior = self.rssm.observe(embed, batch["action"], batch["is_first"], state, generator, priors)
         return post, prior, embed
 
     def loss(

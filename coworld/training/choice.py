@@ -85,8 +85,8 @@ def measure_distance(
             if align_on == "embedding":
                 s, t = source.model_path.embed(batch_t), target.model_path.embed(batch_t)
             else:
-                s = source.model_path.observe(batch_t, generator=generator)[0]["logits"]
-                t = target.model_path.observe(batch_t, generator=generator)[0]["logits"]
+                s = source.model_path.observe(batch_t, generator=generator, priors=False)[0]["logits"]
+                t = target.model_path.observe(batch_t, generator=generator, priors=False)[0]["logits"]
             values.append(float(domain_distance(s.float(), t.float(), align_on)))
     return float(np.mean(values))
 

@@ -100,6 +100,35 @@ def test_observe_is_obs_step_at_every_step_through_resets(tiny: Config, given: b
     assert not torch.equal(other["stoch"], post["stoch"])
 
 
+def test_observe_without_priors_gives_the_same_posterior_and_gradients(tiny: Config) -> None:
+    """``priors=False`` (the callers that read only the posterior: Eq. 3's source latents, Eq. 5's relabel pass, the
+    source choice, the penalised policy phase) returns the posterior ``priors=True`` gives, bit for bit, with the same
+    gradients to the embedding, draws the same noise (the generator ends in the same state), and never runs the
+    transition model."""
+    rssm = _rssm(tiny)
+    batch, length = 3, 6
+    embed, action = torch.randn(batch, length, 10), torch.randn(batch, length, 3)
+    is_first = torch.zeros(batch, length, dtype=torch.bool)
+    is_first[:, 0] = is_first[1, 3] = True
+    weights = torch.randn(batch, length, tiny.world_model.stoch, tiny.world_model.classes)
+    results = {}
+    for priors in (True, False):
+        leaf = embed.clone().requires_grad_(True)
+        generator = torch.Generator().manual_seed(5)
+        post, prior = rssm.observe(leaf, action, is_first, generator=generator, priors=priors)
+        (post["stoch"] * weights).sum().backward()
+        results[priors] = post, prior, leaf.grad, generator.get_state()
+    (post, prior, grad, after), (post_only, none, grad_only, after_only) = results[True], results[False]
+    assert prior is not None and none is None
+    assert all(torch.equal(post[key], post_only[key]) for key in post)
+    assert torch.equal(grad, grad_only) and grad.abs().sum() > 0
+    assert torch.equal(after, after_only)
+    calls = []
+    rssm.transition = lambda *args: calls.append(args)  # an instance attribute shadows the method
+    rssm.observe(embed, action, is_first, priors=False)
+    assert calls == []
+
+
 def test_observe_with_frozen_weights_passes_gradient_to_the_embedding(tiny: Config) -> None:
     rssm = _rssm(tiny)
     embed = torch.randn(2, 5, 10, requires_grad=True)
