@@ -92,7 +92,7 @@ def _markdown(
     root: Path, out: Path, results: list[RunResult], figures: list[tuple[str, str]], skipped: list[str]
 ) -> str:
     from coworld.report import tables
-    from coworld.report.diagnostics import diagnostics_table, world_model_table
+    from coworld.report.diagnostics import actor_critic_table, diagnostics_table, world_model_table
 
     finished = [r for r in results if r.final_return is not None]
     collectors = _collectors(results)
@@ -184,6 +184,19 @@ def _markdown(
             " that costs its model of the target frames shows against offline DreamerV2's.",
             "",
             models,
+            "",
+        ]
+    actor_critics = actor_critic_table(results)
+    if actor_critics:
+        lines += [
+            "## Target actor-critics",
+            "",
+            "Each run's actor-critic over its updates on the target dataset: the critic's mean value on imagined"
+            " states, the actor's entropy and the return scale its loss divides by; first → last log, the run's mean"
+            " in brackets. Eq. 6 caps CoWorld's critic: its level, and what the actor makes of it, show against"
+            " offline DreamerV2's.",
+            "",
+            actor_critics,
             "",
         ]
     if figures:

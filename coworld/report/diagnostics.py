@@ -13,9 +13,11 @@
 
 A term that is switched off logs nothing and shows as a dash.
 
-Beside them, every world-model run's target world model (:func:`world_model_table`): its image and reward losses and
-its KL on the target dataset over its target updates, where what Eq. 3's alignment costs the model of the target
-frames shows against offline DreamerV2's.
+Beside them, every world-model run's target agent over its updates on the target dataset: its world model
+(:func:`world_model_table`: image and reward losses and KL), where what Eq. 3's alignment costs the model of the
+target frames shows against offline DreamerV2's; and its actor-critic (:func:`actor_critic_table`: the critic's
+value, the actor's entropy and the return scale its loss divides by), where a cap on the values shows against an
+uncapped critic's.
 """
 
 from __future__ import annotations
@@ -108,34 +110,52 @@ def diagnostics_table(results: Sequence[RunResult]) -> str:
     return "\n".join(lines)
 
 
-WORLD_MODEL_TERMS = (("image", "image loss"), ("reward", "reward loss"), ("kl", "KL"))
-"""The world model's logged terms (``wm/<name>``) the world-model table shows."""
+WORLD_MODEL_TERMS = (("wm/image", "image loss"), ("wm/reward", "reward loss"), ("wm/kl", "KL"))
+"""The world model's logged terms the world-model table shows, with their titles."""
+ACTOR_CRITIC_TERMS = (
+    ("critic/value", "critic value"),
+    ("actor/entropy", "actor entropy"),
+    ("actor/return_scale", "return scale"),
+)
+"""The actor-critic's logged terms the actor-critic table shows, with their titles."""
 TARGET_UNITS = ("update", "target_update")
 """The units of the logs of updates on the target dataset (an offline run's, a CoWorld run's target phases)."""
 
 
-def target_world_model(records: Sequence[Mapping[str, Any]], name: str) -> Series | None:
-    """The target world model's ``wm/<name>`` over a run's updates on the target dataset (CoWorld logs its target
-    agent's under ``target/``; a source's pretraining, logged by env step, is left out); None where not logged."""
+def on_target(records: Sequence[Mapping[str, Any]], name: str) -> Series | None:
+    """The target agent's ``name`` (``wm/image``, ``critic/value``, ...) over a run's updates on the target dataset
+    (CoWorld logs its target agent's under ``target/``; a source's pretraining, logged by env step, is left out); None
+    where not logged."""
     on_target = [r for r in records if r.get("unit") in TARGET_UNITS]
-    return series(on_target, f"target/wm/{name}") or series(on_target, f"wm/{name}")
+    return series(on_target, f"target/{name}") or series(on_target, name)
 
 
-def world_model_table(results: Sequence[RunResult]) -> str:
-    """A markdown table, one row per run whose target world model logged its losses; '' when there is none."""
+def target_table(results: Sequence[RunResult], terms: Sequence[tuple[str, str]]) -> str:
+    """A markdown table of ``terms`` (:func:`on_target`), one row per run that logged any; '' when there is none."""
     runs = [r for r in results if r.algo != ONLINE_ALGO]
     order = {label: i for i, label in enumerate(label_order(runs))}
     rows = []
     for r in sorted(runs, key=lambda r: (r.target, order[r.label], r.seed)):
-        terms = [target_world_model(read_run_metrics(Path(r.run_dir)), name) for name, _ in WORLD_MODEL_TERMS]
-        if any(terms):
+        records = read_run_metrics(Path(r.run_dir))
+        found = [on_target(records, name) for name, _ in terms]
+        if any(found):
             pair = f"{r.source} → {r.target}" if r.source else r.target
-            cells = [f"{_arrow(t)} ({t.mean:.3g})" if t else "–" for t in terms]
+            cells = [f"{_arrow(t)} ({t.mean:.3g})" if t else "–" for t in found]
             rows.append(f"| {pair} | {r.label} | {r.seed} | " + " | ".join(cells) + " |")
     if not rows:
         return ""
-    names = " | ".join(f"{title}: first → last (run)" for _, title in WORLD_MODEL_TERMS)
-    return "\n".join([f"| pair | algorithm | seed | {names} |", "|---|---|---:|---|---|---|", *rows])
+    names = " | ".join(f"{title}: first → last (run)" for _, title in terms)
+    return "\n".join([f"| pair | algorithm | seed | {names} |", "|---|---|---:|" + "---|" * len(terms), *rows])
+
+
+def world_model_table(results: Sequence[RunResult]) -> str:
+    """Each run's target world model: :data:`WORLD_MODEL_TERMS` over its updates on the target dataset."""
+    return target_table(results, WORLD_MODEL_TERMS)
+
+
+def actor_critic_table(results: Sequence[RunResult]) -> str:
+    """Each run's target actor-critic: :data:`ACTOR_CRITIC_TERMS` over its updates on the target dataset."""
+    return target_table(results, ACTOR_CRITIC_TERMS)
 
 
 def cap_curve(records: Sequence[Mapping[str, Any]], zeta: float) -> list[tuple[int, float, float]]:

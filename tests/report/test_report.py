@@ -492,6 +492,23 @@ def test_the_world_model_table_reads_each_runs_target_model_not_a_sources_pretra
     assert f"| toy_reach → {target} | coworld | 1 | 12 → 8 (10) | 2 → 1 (1.5) | – |" in text
 
 
+def test_the_actor_critic_table_reads_each_runs_target_agent_not_a_sources_pretraining(tmp_path):
+    """The target agent's critic value, actor entropy and return scale: offline DreamerV2's by update, CoWorld's
+    target agent's (``target/...``) by target update; the source's pretraining (by env step) is left out."""
+    target = "toy_reach_shifted"
+    make_run(tmp_path, "dv", algo="dreamerv2", target=target, seed=0, returns=[1.0], records=[
+        {"step": s, "unit": "update", "critic/value": v, "actor/entropy": -18.0, "actor/return_scale": 5.0}
+        for s, v in ((100, 10.0), (200, 30.0))])  # fmt: skip
+    make_run(tmp_path, "cw", algo="coworld", source="toy_reach", target=target, seed=1, returns=[1.0], records=[
+        {"step": 500, "unit": "source_env_step", "critic/value": 99.0, "actor/entropy": 99.0},
+        {"step": 100, "unit": "target_update", "target/critic/value": 4.0, "target/actor/entropy": -20.0},
+        {"step": 200, "unit": "target_update", "target/critic/value": 2.0, "target/actor/entropy": -26.0}])  # fmt: skip
+    write_report(tmp_path)
+    text = (tmp_path / "report.md").read_text().split("## Target actor-critics", 1)[1]
+    assert f"| {target} | dreamerv2 | 0 | 10 → 30 (20) | -18 → -18 (-18) | 5 → 5 (5) |" in text
+    assert f"| toy_reach → {target} | coworld | 1 | 4 → 2 (3) | -20 → -26 (-23) | – |" in text
+
+
 def test_an_unfinished_run_says_how_far_it_logged(tmp_path):
     """Target updates where it has made some; a CoWorld run still pretraining its source, its env steps there."""
     target = "toy_reach_shifted"
