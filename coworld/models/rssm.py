@@ -165,11 +165,12 @@ class RSSM(nn.Module):
             state = self.initial(batch, action.device)
         noise = exponential_noise((length, 2, batch, self.stoch, self.classes), action.device, generator)
         posts: list[State] = []
-        prior_states: list[State | None] = []
+        prior_states: list[State] = []
         for t in range(length):
             state, prior = self.obs_step(state, action[:, t], embed[:, t], is_first[:, t], True, noise[t], priors)
             posts.append(state)
-            prior_states.append(prior)
+            if prior is not None:
+                prior_states.append(prior)
         return stack_states(posts), (stack_states(prior_states) if priors else None)
 
     def _logits(self, raw: Tensor) -> Tensor:
