@@ -186,7 +186,7 @@ class DMCEnv(PixelEnv):
         from dm_control.rl import control
         from dm_control.suite import cheetah, walker
 
-        super().__init__(task, settings, task.action_size)
+        super().__init__(task, settings, task.action_size, seed)
         xml, assets = model_xml(variant)
         if variant.domain == "walker":
             physics: Physics = walker.Physics.from_xml_string(xml, assets)
@@ -206,10 +206,10 @@ class DMCEnv(PixelEnv):
         return self._env.physics
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict]:
-        """Start an episode; ``seed`` re-seeds the initial-state randomisation (else it continues)."""
+        """Start an episode, its initial state drawn from the episode's seed (:class:`~coworld.envs.base.PixelEnv`)."""
+        seed = self._episode_seed(seed)
         super().reset(seed=seed)
-        if seed is not None:
-            self._dm_task.random.seed(seed)
+        self._dm_task.random.seed(seed)
         self._env.reset()
         self._start_episode()
         self._frame = self._renderer.render(self.physics.data.ptr)

@@ -61,7 +61,7 @@ class MetaWorldEnv(PixelEnv):
         import mujoco
         from metaworld.env_dict import ALL_V3_ENVIRONMENTS
 
-        super().__init__(task, settings, task.action_size)
+        super().__init__(task, settings, task.action_size, seed)
         sim: SawyerXYZEnv = ALL_V3_ENVIRONMENTS[ENV_NAMES[task.name]]()  # no gymnasium renderer: we draw frames
         # Fresh positions at each reset from sim.np_random (what the goal-observable constructors set up before
         # freezing them); these are Meta-World attributes without a public setter.
@@ -80,12 +80,13 @@ class MetaWorldEnv(PixelEnv):
         )
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict]:
-        """Start an episode with new object/goal positions; ``seed`` re-seeds their RNG (else it continues)."""
+        """Start an episode with object/goal positions drawn from the episode's seed
+        (:class:`~coworld.envs.base.PixelEnv`)."""
         import mujoco
 
+        seed = self._episode_seed(seed)
         super().reset(seed=seed)
-        if seed is not None:
-            self.sim.seed(seed)
+        self.sim.seed(seed)
         self.sim.reset()
         mujoco.mj_forward(self.sim.model, self.sim.data)  # reset moves goal sites after the last forward pass
         self._start_episode()

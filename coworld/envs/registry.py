@@ -262,9 +262,9 @@ def make(name: str, seed: int = 0, **overrides: Any) -> gym.Env:
 
     Args:
         name: a key of :data:`TASKS`.
-        seed: seeds the initial-state randomisation (the first ``reset()`` without a seed uses it) and the
-            action space's sampler. Same seed and actions give identical frames; ``reset(seed=s)`` restarts
-            that sequence.
+        seed: the first episode's seed (the first ``reset()`` without a seed uses it; each later one the next of
+            a chain from it, :class:`~coworld.envs.base.PixelEnv`) and the action space sampler's. An episode's
+            seed and actions give identical frames; ``reset(seed=s)`` restarts the chain at ``s``.
         **overrides: ``image_size`` (64), ``action_repeat`` (task's), ``episode_length`` (agent steps; default
             keeps the task's simulator-step budget), and for MuJoCo tasks ``render_quality`` ('standard').
 

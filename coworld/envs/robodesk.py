@@ -121,7 +121,7 @@ class RoboDeskEnv(PixelEnv):
         from dm_control.mujoco import Physics
 
         _quiet_ik_warnings()
-        super().__init__(task, settings, task.action_size)
+        super().__init__(task, settings, task.action_size, seed)
         self.robodesk_task = TASK_NAMES[task.name]
         self.physics: Physics = Physics.from_xml_path(str(ASSETS / "desk.xml"))
         # The inverse kinematics moves a second state of the same model, so it never disturbs the simulation.
@@ -145,7 +145,9 @@ class RoboDeskEnv(PixelEnv):
         )
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict]:
-        """Start an episode with new object and arm positions; ``seed`` re-seeds their generator (else it continues)."""
+        """Start an episode with object and arm positions drawn from the episode's seed
+        (:class:`~coworld.envs.base.PixelEnv`)."""
+        seed = self._episode_seed(seed)
         super().reset(seed=seed)
         self.reset_state(seed)
         self._frame = self._render()

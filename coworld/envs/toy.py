@@ -96,7 +96,7 @@ class ToyReachEnv(PixelEnv):
     metadata = {**PixelEnv.metadata, "render_fps": 10}  # no simulated time: 5 s per 50-step episode
 
     def __init__(self, task: TaskSpec, settings: EnvSettings, *, seed: int, variant: ToyVariant) -> None:
-        super().__init__(task, settings, variant.action_size)
+        super().__init__(task, settings, variant.action_size, seed)
         self._variant = variant
         size = settings.image_size
         self._start_rng = np.random.default_rng(seed)
@@ -112,10 +112,10 @@ class ToyReachEnv(PixelEnv):
         self.position = np.zeros(2)
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict]:
-        """Put the dot at a random start; ``seed`` re-seeds the start RNG (else it continues)."""
+        """Put the dot at a random start drawn from the episode's seed (:class:`~coworld.envs.base.PixelEnv`)."""
+        seed = self._episode_seed(seed)
         super().reset(seed=seed)
-        if seed is not None:
-            self._start_rng = np.random.default_rng(seed)
+        self._start_rng = np.random.default_rng(seed)
         while True:
             start = self._start_rng.uniform(-LIMIT, LIMIT, 2)
             if np.linalg.norm(start - self.goal) >= MIN_START_DISTANCE:

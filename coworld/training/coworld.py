@@ -13,9 +13,10 @@ The paper's Algorithm 1, line by line, and where each line runs (the update step
 
 An iteration's target batches come from one stream seeded by (seed, iteration): the target phase takes the first
 K1, the source phase's relabelling the next. Source episodes run on across phase boundaries. A checkpoint is
-written after every phase, its :class:`Progress` naming the next, so a stopped run resumes at that phase's start
-with the batches an uninterrupted one would draw; stopped while pretraining, it resumes from the last source
-checkpoint with the source replay cut back to it (:meth:`~coworld.training.online.OnlineTrainer.restore`).
+written after every phase, its :class:`Progress` naming the next, with the source agent's online state (its running
+episodes among it), so a stopped run resumes at that phase's start with its source replay cut back to the checkpoint
+and goes on exactly as an uninterrupted one (the same batches, source steps and weights); stopped while pretraining,
+it resumes that way from the last source checkpoint (:meth:`~coworld.training.online.OnlineTrainer.restore`).
 """
 
 from __future__ import annotations
@@ -208,7 +209,7 @@ class Algorithm1:
                 "agent": self.agent.target.state_dict(),
                 "source": self.agent.source.state_dict(),
                 "source_updates": self.source.updates,
-                "source_act_rng": self.source.act_rng.get_state(),
+                "source_online": self.source.online_state(),
                 "progress": dataclasses.asdict(self.state),
                 "rng": rng_state(),
                 **self.policy_value_state(),
@@ -224,8 +225,8 @@ class Algorithm1:
         """Continue from the run folder: the combined checkpoint once past pretraining, else the source's
         pretraining checkpoint (with the target-policy critic it holds, and a chosen source's warmed-up target agent
         where the choice made one)."""
-        source_state = self.source.restore(rollback=not self.checkpoint_path.exists())
         if not self.checkpoint_path.exists():
+            source_state = self.source.restore(rollback=True)
             if self.agent.policy_value is not None and source_state is not None and "policy_value" in source_state:
                 self.agent.policy_value.load_state_dict(source_state["policy_value"])
             if warm_target is not None:
@@ -239,9 +240,12 @@ class Algorithm1:
         self.agent.source.load_state_dict(state["source"])
         if self.agent.policy_value is not None:
             self.agent.policy_value.load_state_dict(state["policy_value"])
-        self.source.updates = int(state["source_updates"])
-        if "source_act_rng" in state:
-            self.source.act_rng.set_state(state["source_act_rng"])
+        online = state.get("source_online")
+        if online is None:  # written before the checkpoint held the source's online state: from the data alone
+            online = {"updates": state["source_updates"], "last_eval": None, "last_eval_step": -1}
+            if "source_act_rng" in state:
+                online["act_rng"] = state["source_act_rng"]
+        self.source.resume(online, rollback="source_online" in state)
         self.state = Progress(**state["progress"])
         # a checkpoint is written at a phase's start: the source phases before it made K2 relabelled updates each
         self.agent.relabelled = self.state.iteration * self.cfg.source_updates

@@ -4,9 +4,17 @@ The loop steps ``config.train.envs`` environments, stores every finished episode
 the agent trains from and in an HDF5 dataset (the collected dataset itself, or ``<logdir>/replay.h5``), trains
 once every ``train_every`` environment steps after a random prefill, evaluates every ``eval_every`` steps,
 and checkpoints at episode boundaries. The dataset is the record of what was experienced: when a killed run is
-started again on the same folder, the agent comes back from its checkpoint, the replay is reloaded from the
-dataset, and the step count continues from the dataset's row count, so no episode is lost or counted twice
-(the episodes that were running at the kill are lost, as promised by the dataset writer).
+started again on the same folder, the agent comes back from its checkpoint and the replay is reloaded from the
+dataset.
+
+Resumes: a checkpoint holds, beside the agent and the random states, the trainer's counters, the replay sampler's
+state and the running episodes, as each environment's episode seed and its actions so far (an episode is a function
+of the two, :class:`coworld.envs.base.PixelEnv`). Where the dataset holds exactly the episodes the checkpoint had
+seen, the next :meth:`OnlineTrainer.run` makes the running episodes again by replaying those actions and goes on as
+the uninterrupted run did: the same steps, batches and weights. A two-phase run's source agent cuts its replay back
+to the checkpoint (``restore(rollback=True)``) to resume this way; collection keeps every recorded episode, so where
+it recorded some after its checkpoint the step count continues from the dataset's row count and new episodes start
+(the ones running at the kill are lost, as promised by the dataset writer).
 
 Vector environments follow Gymnasium's default NEXT_STEP autoreset: after a step that ends an episode, the
 next ``step`` of that environment ignores its action and returns the first observation of a new episode. The
@@ -15,8 +23,8 @@ of every episode (and only with it), the frame the replay stores as ``is_first``
 
 Train ratio: after ``train.prefill`` random steps the agent makes ``train.pretrain_updates`` updates at once
 (DreamerV2's ``pretrain``), then one update every ``train.train_every`` environment steps
-(:meth:`OnlineTrainer.updates_due`). A resumed run keeps that ratio from its restored state on rather than
-catching up the updates lost with the killed process.
+(:meth:`OnlineTrainer.updates_due`). A collection resumed from a dataset that went on past its checkpoint keeps
+that ratio from its restored state on rather than catching up the updates lost with the killed process.
 
 By default each update is made as soon as it falls due, before the next step, and acting draws its random numbers
 from torch's default generator, as the updates do. ``train.background_updates=true`` acts beside learning
@@ -34,6 +42,7 @@ update.
 from __future__ import annotations
 
 import threading
+import warnings
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -54,7 +63,7 @@ from coworld.training.replay import Replay
 
 CHECKPOINT_KIND = "dreamerv2-online"
 CHECKPOINT_KEYS = ("agent", "updates", "last_eval", "last_eval_step", "rng")
-"""What an online run's checkpoint holds beyond its kind (:meth:`OnlineTrainer.save`)."""
+"""What an online run's checkpoint holds beyond its kind, at least (:meth:`OnlineTrainer.save`)."""
 ACT_SEED_OFFSET = 30_000
 """Acting's generator is seeded with ``seed + ACT_SEED_OFFSET`` (evaluation uses ``seed + 10_000``)."""
 STOP_WAIT_SECONDS = 5.0
@@ -128,6 +137,20 @@ class Updates:
             self._error = error
 
 
+def replay_step(
+    image: np.ndarray, action: np.ndarray, reward: float, is_first: bool, is_last: bool, is_terminal: bool
+) -> dict[str, Any]:
+    """One step as the replay stores it (:mod:`coworld.training.replay`)."""
+    return {
+        "image": image,
+        "action": action,
+        "reward": np.float32(reward),
+        "is_first": is_first,
+        "is_last": is_last,
+        "is_terminal": is_terminal,
+    }
+
+
 def dataset_episodes(path: str | Path) -> list[dict[str, np.ndarray]]:
     """Every episode of a dataset in the step convention (for reloading a replay)."""
     with open_dataset(path) as dataset:
@@ -180,6 +203,15 @@ class OnlineTrainer:
         self._venv: Any = None
         self._obs: np.ndarray | None = None
         self._is_last = np.zeros(config.train.envs, dtype=bool)
+        self._episode_actions: list[list[np.ndarray]] = [[] for _ in range(config.train.envs)]
+        """Each environment's actions since its running (or just ended) episode began: with the episode's seed,
+        what makes it again (:meth:`_replay_episodes`)."""
+        self._running_success: list[list[float]] = [[] for _ in range(config.train.envs)]
+        """Each environment's success flags in its running episode (Meta-World, RoboDesk)."""
+        self._cut = False
+        """The running episodes were cut at ``max_steps`` (a collection's last step): they cannot go on."""
+        self._acting: dict[str, Any] | None = None
+        """A checkpoint's running episodes, which the next :meth:`run` makes again (see the module docstring)."""
         self._last_checkpoint_step = self.steps
         self.background = config.train.background_updates
         """Acting beside learning (see the module docstring)."""
@@ -209,6 +241,16 @@ class OnlineTrainer:
         state = None
         if self.checkpoint_path.exists():
             state = read_run_checkpoint(self.checkpoint_path, self.agent, CHECKPOINT_KIND, CHECKPOINT_KEYS)
+            restore_agent(self.agent, state, self.checkpoint_path, "an online dreamerv2 agent of this config")
+        self.resume(state, rollback=rollback)
+        return state
+
+    def resume(self, state: Mapping[str, Any] | None, *, rollback: bool) -> None:
+        """Continue from ``state`` (a checkpoint's :meth:`online_state` entries; None: from the data alone), the
+        agent's weights and the random state being restored by the caller: the replay reloaded from the dataset, cut
+        back first to the episodes ``state`` had seen where ``rollback``; its counters and random states; and, where
+        the dataset then holds exactly those episodes, its running episodes, which the next :meth:`run` makes again.
+        """
         if rollback:
             seen = 0 if state is None else state.get("episodes", self.writer.num_episodes)
             self.writer.keep_episodes(min(int(seen), self.writer.num_episodes))
@@ -216,26 +258,55 @@ class OnlineTrainer:
             self.replay.add_episode(episode)
         self.steps = self.writer.num_steps
         if state is None:
-            return None
-        restore_agent(self.agent, state, self.checkpoint_path, "an online dreamerv2 agent of this config")
+            return
         self.updates = int(state["updates"])
         self.last_eval = state["last_eval"]
         self.last_eval_step = int(state["last_eval_step"])
         if "act_rng" in state:  # checkpoints from before acting had its own generator start it afresh
             self.act_rng.set_state(state["act_rng"])
-        return state
+        if "acting" in state and state["episodes"] == self.writer.num_episodes:
+            self.steps = int(state["steps"])
+            self._skipped_updates = int(state["skipped_updates"])
+            self._last_checkpoint_step = int(state["last_checkpoint_step"])
+            self.replay.sampler_state = state["replay_rng"]
+            self._acting = dict(state["acting"])
 
-    def save(self) -> None:
+    def online_state(self) -> dict[str, Any]:
+        """The trainer's entries of a checkpoint: counters, acting's and the replay sampler's random states, and the
+        running episodes (each environment's episode seed and actions so far, its latent state and last frame)
+        unless none runs or they were cut. With the agent's weights and the global random state, what
+        :meth:`resume` continues from exactly."""
         self._finish_update()
-        state = {
-            **run_state(CHECKPOINT_KIND, self.task, self.config, self.agent),
+        state: dict[str, Any] = {
             "steps": self.steps,
             "episodes": self.writer.num_episodes,
             "updates": self.updates,
+            "skipped_updates": self._skipped_updates,
             "last_eval": self.last_eval,
             "last_eval_step": self.last_eval_step,
+            "last_checkpoint_step": self._last_checkpoint_step,
             "act_rng": self.act_rng.get_state(),
+            "replay_rng": self.replay.sampler_state,
         }
+        if self._venv is not None and self._obs is not None and not self._cut:
+            size = self.spec.action_size
+            state["acting"] = {
+                "seeds": [int(seed) for seed in self._venv.get_attr("episode_seed")],
+                "actions": [
+                    torch.as_tensor(np.asarray(a, np.float32).reshape(len(a), size)) for a in self._episode_actions
+                ],
+                "obs": torch.as_tensor(self._obs),
+                "is_first": torch.as_tensor(self._is_first),
+                "is_last": torch.as_tensor(self._is_last),
+                "latent": self._state,
+            }
+        elif self._acting is not None:  # restored and not yet made again: still the checkpoint's
+            state["acting"] = self._acting
+        return state
+
+    def save(self) -> None:
+        online = self.online_state()
+        state = {**run_state(CHECKPOINT_KIND, self.task, self.config, self.agent), **online}
         if self.checkpoint_extra is not None:
             state.update(self.checkpoint_extra())
         save_checkpoint(self.checkpoint_path, state)
@@ -265,12 +336,15 @@ class OnlineTrainer:
             workers = True if self.background else None
             self._venv = envs.make_vector(self.task, cfg.envs, seed=self.config.seed + self.steps, workers=workers)
             self._obs = None
+            if self._acting is not None:
+                self._replay_episodes(self._acting)
+            self._acting = None
         n = cfg.envs
         if self._obs is None:
             self._obs, _ = self._venv.reset(seed=[self.config.seed + self.steps + i for i in range(n)])
             self._state = None
             self._is_first = np.ones(n, dtype=bool)
-            self._running_success: list[list[float]] = [[] for _ in range(n)]
+            self._running_success = [[] for _ in range(n)]
             for i in range(n):
                 self._record(i, self._obs[i], np.zeros(self.spec.action_size, np.float32), 0.0, True, False, False)
         self._skip_missed_updates()
@@ -308,6 +382,7 @@ class OnlineTrainer:
                 # (stored as time limits); without it, every env's step is kept and the episodes run on.
                 keep = min(n, max_steps - self.steps) if cut_episodes else n
                 final = cut_episodes and self.steps + keep >= max_steps
+                self._cut |= final
                 ended = False
                 for i in range(n):
                     if self._is_last[i]:  # NEXT_STEP autoreset: this step only reset env i; obs[i] is o_0
@@ -342,8 +417,8 @@ class OnlineTrainer:
                             reason = f"evaluation return {self.last_eval:.1f} reached {stop_return:.1f}"
                             break
                     if self.steps - self._last_checkpoint_step >= cfg.checkpoint_every:
-                        self.save()
                         self._last_checkpoint_step = self.steps
+                        self.save()
                 if should_pause is not None and should_pause(self):
                     reason = "paused"
                     break
@@ -378,19 +453,8 @@ class OnlineTrainer:
     ) -> bool:
         """Add one step of env ``i``; write the episode when it ends. Returns True when it ended one."""
         self._is_last[i] = is_last
-        if is_first:
-            self._running_success[i] = []
-        elif success is not None:
-            self._running_success[i].append(success)
-        step = {
-            "image": image,
-            "action": action,
-            "reward": np.float32(reward),
-            "is_first": is_first,
-            "is_last": is_last,
-            "is_terminal": is_terminal,
-        }
-        episode = self.replay.add_step(i, step)
+        self._note_step(i, action, is_first, success)
+        episode = self.replay.add_step(i, replay_step(image, action, reward, is_first, is_last, is_terminal))
         if episode is None:
             return False
         infos = {"success": np.asarray(self._running_success[i], np.float32)} if self._running_success[i] else None
@@ -402,6 +466,55 @@ class OnlineTrainer:
             infos=infos,
         )
         return True
+
+    def _note_step(self, i: int, action: np.ndarray, is_first: bool, success: float | None) -> None:
+        """What env ``i``'s running episode keeps beside the replay: its actions and successes so far."""
+        if is_first:
+            self._episode_actions[i], self._running_success[i] = [], []
+            return
+        self._episode_actions[i].append(action)
+        if success is not None:
+            self._running_success[i].append(success)
+
+    def _replay_episodes(self, acting: Mapping[str, Any]) -> None:
+        """Make a checkpoint's running episodes again (``acting``, :meth:`online_state`): each environment reset
+        with its episode's seed and stepped with its actions, the steps of the episodes still running added to the
+        replay as they were first; then the latent state, flags and frames the checkpoint held. The environments
+        step together, so their episodes, of one length and started together, have run as many steps."""
+        actions = [np.asarray(a, np.float32) for a in acting["actions"]]
+        n, is_last = len(actions), np.asarray(acting["is_last"], bool)
+        if n != self.config.train.envs or len({len(a) for a in actions}) != 1:
+            warnings.warn(
+                f"{self.task}: the checkpoint's running episodes do not fit {self.config.train.envs} "
+                "environments stepping together; new episodes start",
+                stacklevel=2,
+            )
+            return
+        obs, _ = self._venv.reset(seed=[int(seed) for seed in acting["seeds"]])
+        self._running_success = [[] for _ in range(n)]
+        zero = np.zeros(self.spec.action_size, np.float32)
+        for i in np.flatnonzero(~is_last):
+            self._note_step(i, zero, True, None)
+            self.replay.add_step(i, replay_step(obs[i], zero, 0.0, True, False, False))
+        for t in range(len(actions[0])):
+            step = np.stack([a[t] for a in actions])
+            obs, reward, _, _, info = self._venv.step(step)
+            for i in range(n):
+                success = float(info["success"][i]) if "success" in info else None
+                self._note_step(i, step[i], False, success)
+                if not is_last[i]:
+                    self.replay.add_step(i, replay_step(obs[i], step[i], float(reward[i]), False, False, False))
+        self._episode_actions = [list(a) for a in actions]
+        if not np.array_equal(obs, np.asarray(acting["obs"])):
+            warnings.warn(
+                f"{self.task}: replayed from their seeds and actions, the running episodes reach other "
+                "frames than the checkpoint's (another simulator build?); they go on from the replayed "
+                "ones",
+                stacklevel=2,
+            )
+        self._obs, self._state = obs, acting["latent"]
+        self._is_first = np.asarray(acting["is_first"], bool).copy()
+        self._is_last = is_last.copy()
 
     def _bar_info(self, updates_per_s: float | None = None) -> dict[str, str]:
         """The progress bar's postfix: updates, updates/s over the last log window, last evaluation return."""

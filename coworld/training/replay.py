@@ -53,6 +53,15 @@ class Replay:
         while self.capacity and self.num_steps > self.capacity and len(self.episodes) > 1:
             self.num_steps -= len(self.episodes.pop(0)["reward"])
 
+    @property
+    def sampler_state(self) -> dict:
+        """The window sampler's random state (a checkpoint's entry; set it to continue the same draws)."""
+        return self._rng.bit_generator.state
+
+    @sampler_state.setter
+    def sampler_state(self, state: dict) -> None:
+        self._rng.bit_generator.state = state
+
     # -- sampling --------------------------------------------------------------------------------------------------
     def sample(self, batch_size: int, seq_len: int) -> dict[str, np.ndarray]:
         """A batch of ``batch_size`` windows of ``seq_len`` steps, each inside one episode when it is long enough.

@@ -1,4 +1,4 @@
-"""Algorithm 1's schedule on the toy pair: a run killed inside a source phase resumes at the train ratio, the two
+"""Algorithm 1's schedule on the toy pair: a run killed inside a source phase resumes exactly, the two
 alignment readings of Eq. 3 are reduced as the paper and the release do, and the source model's pass made ahead
 with a target batch trains as the update's own pass does."""
 
@@ -8,6 +8,7 @@ import copy
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 import torch
 
@@ -34,10 +35,15 @@ SCHEDULE = [
 ]
 
 
-def test_a_run_killed_inside_a_source_phase_resumes_without_a_burst_of_updates(
+def test_a_run_killed_inside_a_source_phase_resumes_to_the_weights_of_an_uninterrupted_run(
     tmp_path: Path, toy_dataset_writer, coworld_toy_job, monkeypatch: pytest.MonkeyPatch
 ) -> None:
+    """Killed mid-episode in its first source phase, the rerun cuts the source replay back to the phase's checkpoint,
+    makes the running source episodes again from their seeds and actions, and ends with the very weights, source steps
+    and source replay of a run never stopped, never making two source updates without a step between them."""
     dataset = toy_dataset_writer(tmp_path / "target.h5", "toy_reach_shifted", episodes=3)
+    run_job(coworld_toy_job(dataset, tmp_path / "whole", SCHEDULE), progress=False)
+    whole = torch.load(tmp_path / "whole" / "checkpoint.pt", weights_only=True)
     job = coworld_toy_job(dataset, tmp_path / "run", SCHEDULE)
     original_train_source = CoWorld.train_source
     calls = {"n": 0}
@@ -73,6 +79,17 @@ def test_a_run_killed_inside_a_source_phase_resumes_without_a_burst_of_updates(
     assert max(updates_per_call) == 1  # never two source updates without an environment step between them
     final = torch.load(tmp_path / "run" / "checkpoint.pt", weights_only=True)
     assert final["source_updates"] == 13 + 2 * 15  # pretraining, then exactly K2 per iteration
+    _assert_same_tensors(
+        {"target": whole["agent"], "source": whole["source"]}, {"target": final["agent"], "source": final["source"]}
+    )
+    assert final["source_online"]["steps"] == whole["source_online"]["steps"]
+    with (
+        open_dataset(tmp_path / "run" / "source_replay.h5") as a,
+        open_dataset(tmp_path / "whole" / "source_replay.h5") as b,
+    ):
+        assert a.num_episodes == b.num_episodes > 0
+        for i in range(a.num_episodes):
+            assert all(np.array_equal(x, y) for x, y in zip(a.episode(i).values(), b.episode(i).values(), strict=True))
 
 
 @pytest.mark.parametrize("align_on", ["latent", "embedding"])
@@ -183,13 +200,24 @@ PRETRAINING = [
 
 
 @pytest.mark.parametrize(
-    ("stop_at", "cap_critic"),
-    [(70, "source"), pytest.param(160, "source", marks=pytest.mark.slow), (160, "target_policy")],
-    ids=["before-its-first-checkpoint", "after-a-checkpoint", "target-policy-cap-after-a-checkpoint"],
+    ("stop_at", "cap_critic", "acting"),
+    [
+        (70, "source", []),
+        pytest.param(160, "source", [], marks=pytest.mark.slow),
+        (160, "target_policy", []),
+        (160, "source", ["train.envs=2", "train.background_updates=true"]),
+    ],
+    ids=[
+        "before-its-first-checkpoint",
+        "after-a-checkpoint",
+        "target-policy-cap-after-a-checkpoint",
+        "two-envs-beside-learning-after-a-checkpoint",
+    ],
 )
 def test_a_run_stopped_while_it_pretrains_ends_with_an_uninterrupted_runs_counts(
     stop_at: int,
     cap_critic: str,
+    acting: list[str],
     tmp_path: Path,
     toy_dataset_writer,
     coworld_toy_job,
@@ -197,10 +225,10 @@ def test_a_run_stopped_while_it_pretrains_ends_with_an_uninterrupted_runs_counts
 ) -> None:
     """Stopped while its source agent pretrains (Ctrl-C, SIGTERM, a kill, a full disk), the rerun continues from the
     last source checkpoint with the source replay cut back to what that checkpoint had seen, so it ends with the
-    source updates and steps an uninterrupted run ends with, and the target-policy critic (which learns beside the
-    source agent) with its updates; stopped before the first checkpoint it starts the pretraining over, and trains
-    the very weights an uninterrupted run trains."""
-    overrides = [*PRETRAINING, f"coworld.cap_critic={cap_critic}"]
+    source updates, steps and weights an uninterrupted run ends with (the episodes running at the checkpoint made
+    again from their seeds and actions), and the target-policy critic (which learns beside the source agent) with its
+    updates; stopped before the first checkpoint it starts the pretraining over."""
+    overrides = [*PRETRAINING, f"coworld.cap_critic={cap_critic}", *acting]
     dataset = toy_dataset_writer(tmp_path / "target.h5", "toy_reach_shifted", episodes=3)
     run_job(coworld_toy_job(dataset, tmp_path / "whole", overrides), progress=False)
     whole = torch.load(tmp_path / "whole" / "checkpoint.pt", weights_only=True)
@@ -218,8 +246,9 @@ def test_a_run_stopped_while_it_pretrains_ends_with_an_uninterrupted_runs_counts
         run_job(job, progress=False)
     assert not (tmp_path / "run" / "checkpoint.pt").exists()  # stopped inside the pretraining
     assert (tmp_path / "run" / "source" / "checkpoint.pt").exists() == (stop_at > 100)
-    with open_dataset(tmp_path / "run" / "source_replay.h5") as replay:  # an episode after the last checkpoint
-        assert replay.num_steps > (100 if stop_at > 100 else 0)
+    with open_dataset(tmp_path / "run" / "source_replay.h5") as replay:
+        # one env: an episode ended after the last checkpoint; two: theirs were running, 60 steps past it
+        assert replay.num_steps > (100 if stop_at > 100 else 0) or replay.num_steps == 100 < stop_at
     monkeypatch.undo()
     run_job(job, progress=False)
     resumed = torch.load(tmp_path / "run" / "checkpoint.pt", weights_only=True)
@@ -229,7 +258,7 @@ def test_a_run_stopped_while_it_pretrains_ends_with_an_uninterrupted_runs_counts
         open_dataset(tmp_path / "whole" / "source_replay.h5") as b,
     ):
         assert a.num_steps == b.num_steps
-    if stop_at < 100:  # started over: the very weights (from a checkpoint, the counts)
-        _assert_same_tensors(whole["source"], resumed["source"])
+    _assert_same_tensors(whole["source"], resumed["source"])
     if cap_critic == "target_policy":
         assert int(resumed["policy_value"]["updates"]) == int(whole["policy_value"]["updates"]) > 0
+        _assert_same_tensors(whole["policy_value"], resumed["policy_value"])

@@ -166,3 +166,28 @@ def test_every_family_refuses_a_step_outside_an_episode_and_an_action_of_another
     env.reset()
     assert env.step(action)[3] is False  # a new episode runs
     env.close()
+
+
+@pytest.mark.parametrize("name", ["toy_reach", "cheetah_run", "mw_button_press", "robodesk_push_button"])
+def test_every_familys_episode_is_a_function_of_its_seed_and_actions(name: str) -> None:
+    """The third episode of a chain of ``reset()`` calls is made again by an env whose history differs, reset with that
+    episode's seed and given the same actions (what an online run's exact resume relies on); the chain's episodes
+    differ from each other."""
+    rng = np.random.default_rng(0)
+    actions = rng.uniform(-1, 1, (4, TASKS[name].action_size)).astype(np.float32)
+
+    def episode(env: gym.Env, seed: int | None) -> list[np.ndarray]:
+        frames = [env.reset(seed=seed)[0]]
+        return frames + [env.step(action)[0] for action in actions]
+
+    first = make(name, seed=3, episode_length=4)
+    chain = [episode(first, None) for _ in range(3)]
+    seed = first.unwrapped.episode_seed
+    other = make(name, seed=11, episode_length=4)
+    episode(other, None)  # another history before it
+    again = episode(other, seed)
+    assert other.unwrapped.episode_seed == seed
+    assert all(np.array_equal(a, b) for a, b in zip(chain[2], again, strict=True))
+    assert not np.array_equal(chain[0][0], chain[1][0]) or not np.array_equal(chain[1][0], chain[2][0])
+    first.close()
+    other.close()
