@@ -2,7 +2,8 @@
 
 After every kill, what was committed before it is intact (the dataset verifies apart from being unfinished, every
 episode kept by an earlier round is unchanged, the checkpoint loads, the file a merge replaces is byte for byte the
-same), and the last rerun finishes with exactly the amount asked for. A few kills run in the fast suite; the longer
+same), and the last rerun finishes with exactly the amount asked for; a training run killed again and again ends
+with the weights of the same command never killed. A few kills run in the fast suite; the longer
 sweeps are marked slow.
 """
 
@@ -14,6 +15,7 @@ from types import ModuleType
 
 import numpy as np
 import pytest
+import torch
 
 from coworld.data import open_dataset, verify_dataset
 from coworld.training.checkpoint import load_checkpoint
@@ -87,8 +89,10 @@ PENALTY = ["--algo", "dreamerv2-penalty", *DREAMER_SCHEDULE, "--set", "penalty.m
 FINETUNE = ["--algo", "dreamerv2-finetune", "--source", "toy_reach", "--set", "train.prefill=100"]
 FINETUNE += ["--set", "coworld.pretrain_steps=200", *DREAMER_SCHEDULE]
 LOMPO = ["--algo", "lompo", *DREAMER_SCHEDULE, "--set", "lompo.model_updates=15"]
+DREAMERV2 = ["--algo", "dreamerv2", *DREAMER_SCHEDULE]
 EWC = ["--algo", "dreamerv2-finetune-ewc", *FINETUNE[2:]]
 OFFLINE = {
+    "dreamerv2": DREAMERV2,
     "curl": CURL,
     "drq-bc": DRQ_BC,
     "dreamerv2-penalty": PENALTY,
@@ -106,6 +110,7 @@ COWORLD = (
 @pytest.mark.parametrize(
     ("algo", "kills"),
     [
+        pytest.param("dreamerv2", 3, id="dreamerv2-3-kills", marks=pytest.mark.slow),
         pytest.param("curl", 2, id="curl-2-kills", marks=pytest.mark.slow),
         pytest.param("drq-bc", 2, id="drq-bc-2-kills"),
         pytest.param("dreamerv2-penalty", 3, id="dreamerv2-penalty-3-kills", marks=pytest.mark.slow),
@@ -153,6 +158,23 @@ def test_train_killed_at_random_moments(
     else:
         assert state["progress"]["iteration"] == 3 and state["agent"]["updates"] == 30
         assert helpers.episode_digests(replay)[: len(experience)] == experience
+    whole = tmp_path / "whole"
+    done = processes.run_cli(*args[:-2], "--logdir", str(whole))  # the same command, in a folder of its own
+    assert done.returncode == 0, done.stderr[-3000:]
+    never_killed = load_checkpoint(whole / "checkpoint.pt")
+    changed = [key for key in ("agent", "source") if key in state and _differs(state[key], never_killed[key])]
+    assert not changed, changed
+
+
+def _differs(a: object, b: object) -> bool:
+    """Whether two nested state dicts differ in structure or in any value, tensors element for element."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        return a.keys() != b.keys() or any(_differs(a[key], b[key]) for key in a)
+    if isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)):
+        return len(a) != len(b) or any(_differs(x, y) for x, y in zip(a, b, strict=True))
+    if isinstance(a, torch.Tensor) and isinstance(b, torch.Tensor):
+        return a.shape != b.shape or not torch.equal(a, b)
+    return a != b
 
 
 def _replaced(path: Path, mtime: int | None):
