@@ -139,6 +139,36 @@ def test_pretraining_without_cut_leaves_no_mark_in_the_episodes(tmp_path: Path) 
         assert list(data.lengths) == [50, 50, 50, 50]  # no episode cut at 70, no transition dropped
 
 
+def test_running_episodes_replayed_to_other_frames_say_so_and_go_on_from_the_replayed_ones(tmp_path: Path) -> None:
+    """A checkpoint taken inside episode 2 holds its seed and 20 actions; resumed, the trainer makes it again and goes
+    on from there (the episode ends whole at 50 steps). Where the replayed frames are not the checkpoint's (here: its
+    last frame altered, as another simulator build would give), a warning says so and the episode still goes on."""
+    import torch
+
+    overrides = [f"train.prefill={NEVER}", f"train.checkpoint_every={NEVER}"]
+    with open_writer(tmp_path / "d.h5") as writer, Logger(tmp_path, outputs=()) as logger:
+        loop = trainer(tmp_path, ProbeAgent(2), overrides, writer, logger)
+        try:
+            loop.run(max_steps=70, progress=False, cut_episodes=False)  # saves, 20 steps into episode 2
+        finally:
+            loop.close()
+    state = torch.load(tmp_path / "checkpoint.pt", weights_only=True)
+    assert state["steps"] == 70 and len(state["acting"]["actions"][0]) == 20
+    state["acting"]["obs"] = 255 - state["acting"]["obs"]
+    torch.save(state, tmp_path / "checkpoint.pt")
+    with open_writer(tmp_path / "d.h5", resume=True) as writer, Logger(tmp_path, outputs=()) as logger:
+        loop = trainer(tmp_path, ProbeAgent(2), overrides, writer, logger)
+        loop.restore(rollback=True)
+        assert loop.steps == 70
+        try:
+            with pytest.warns(UserWarning, match="other frames than the checkpoint's"):
+                loop.run(max_steps=100, progress=False, cut_episodes=False)
+        finally:
+            loop.close()
+    with open_dataset(tmp_path / "d.h5") as data:
+        assert list(data.lengths) == [50, 50]
+
+
 def _dreamer_run(tmp_path: Path, in_thread: bool) -> tuple[OnlineTrainer, dict[str, Any], dict[str, np.ndarray]]:
     """A tiny DreamerV2 trained online on toy_reach for 300 steps with ``train.background_updates``, its updates on
     their thread or (``in_thread=False``) in turn; returns the loop, the agent's weights and the data."""
