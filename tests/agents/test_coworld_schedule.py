@@ -205,7 +205,7 @@ PRETRAINING = [
         (70, "source", []),
         pytest.param(160, "source", [], marks=pytest.mark.slow),
         (160, "target_policy", []),
-        (160, "source", ["train.envs=2", "train.background_updates=true"]),
+        pytest.param(160, "source", ["train.envs=2", "train.background_updates=true"], marks=pytest.mark.slow),
     ],
     ids=[
         "before-its-first-checkpoint",

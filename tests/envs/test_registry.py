@@ -168,7 +168,10 @@ def test_every_family_refuses_a_step_outside_an_episode_and_an_action_of_another
     env.close()
 
 
-@pytest.mark.parametrize("name", ["toy_reach", "cheetah_run", "mw_button_press", "robodesk_push_button"])
+@pytest.mark.parametrize(
+    "name",
+    ["toy_reach", "cheetah_run", "mw_button_press", pytest.param("robodesk_push_button", marks=pytest.mark.slow)],
+)
 def test_every_familys_episode_is_a_function_of_its_seed_and_actions(name: str) -> None:
     """The third episode of a chain of ``reset()`` calls is made again by an env whose history differs, reset with that
     episode's seed and given the same actions (what an online run's exact resume relies on); the chain's episodes
