@@ -137,6 +137,11 @@ class Updates:
             self._error = error
 
 
+def host(value: Any) -> np.ndarray:
+    """A checkpoint's array as NumPy: its tensors are loaded onto the agent's device, a GPU's among them."""
+    return value.cpu().numpy() if isinstance(value, torch.Tensor) else np.asarray(value)
+
+
 def replay_step(
     image: np.ndarray, action: np.ndarray, reward: float, is_first: bool, is_last: bool, is_terminal: bool
 ) -> dict[str, Any]:
@@ -263,7 +268,7 @@ class OnlineTrainer:
         self.last_eval = state["last_eval"]
         self.last_eval_step = int(state["last_eval_step"])
         if "act_rng" in state:  # checkpoints from before acting had its own generator start it afresh
-            self.act_rng.set_state(state["act_rng"])
+            self.act_rng.set_state(state["act_rng"].cpu())  # loaded onto the agent's device; generators take CPU states
         if "acting" in state and state["episodes"] == self.writer.num_episodes:
             self.steps = int(state["steps"])
             self._skipped_updates = int(state["skipped_updates"])
@@ -481,8 +486,8 @@ class OnlineTrainer:
         with its episode's seed and stepped with its actions, the steps of the episodes still running added to the
         replay as they were first; then the latent state, flags and frames the checkpoint held. The environments
         step together, so their episodes, of one length and started together, have run as many steps."""
-        actions = [np.asarray(a, np.float32) for a in acting["actions"]]
-        n, is_last = len(actions), np.asarray(acting["is_last"], bool)
+        actions = [host(a).astype(np.float32) for a in acting["actions"]]
+        n, is_last = len(actions), host(acting["is_last"]).astype(bool)
         if n != self.config.train.envs or len({len(a) for a in actions}) != 1:
             warnings.warn(
                 f"{self.task}: the checkpoint's running episodes do not fit {self.config.train.envs} "
@@ -505,7 +510,7 @@ class OnlineTrainer:
                 if not is_last[i]:
                     self.replay.add_step(i, replay_step(obs[i], step[i], float(reward[i]), False, False, False))
         self._episode_actions = [list(a) for a in actions]
-        if not np.array_equal(obs, np.asarray(acting["obs"])):
+        if not np.array_equal(obs, host(acting["obs"])):
             warnings.warn(
                 f"{self.task}: replayed from their seeds and actions, the running episodes reach other "
                 "frames than the checkpoint's (another simulator build?); they go on from the replayed "
@@ -513,7 +518,7 @@ class OnlineTrainer:
                 stacklevel=2,
             )
         self._obs, self._state = obs, acting["latent"]
-        self._is_first = np.asarray(acting["is_first"], bool).copy()
+        self._is_first = host(acting["is_first"]).astype(bool)
         self._is_last = is_last.copy()
 
     def _bar_info(self, updates_per_s: float | None = None) -> dict[str, str]:
