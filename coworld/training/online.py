@@ -496,11 +496,11 @@ class OnlineTrainer:
             )
             return
         obs, _ = self._venv.reset(seed=[int(seed) for seed in acting["seeds"]])
-        self._running_success = [[] for _ in range(n)]
         zero = np.zeros(self.spec.action_size, np.float32)
-        for i in np.flatnonzero(~is_last):
+        for i in range(n):
             self._note_step(i, zero, True, None)
-            self.replay.add_step(i, replay_step(obs[i], zero, 0.0, True, False, False))
+            if not is_last[i]:
+                self.replay.add_step(i, replay_step(obs[i], zero, 0.0, True, False, False))
         for t in range(len(actions[0])):
             step = np.stack([a[t] for a in actions])
             obs, reward, _, _, info = self._venv.step(step)
@@ -509,7 +509,6 @@ class OnlineTrainer:
                 self._note_step(i, step[i], False, success)
                 if not is_last[i]:
                     self.replay.add_step(i, replay_step(obs[i], step[i], float(reward[i]), False, False, False))
-        self._episode_actions = [list(a) for a in actions]
         if not np.array_equal(obs, host(acting["obs"])):
             warnings.warn(
                 f"{self.task}: replayed from their seeds and actions, the running episodes reach other "
