@@ -4,9 +4,9 @@ never killed, on the device given (``cuda`` on a GPU machine; ``cpu`` is the ref
 The run is the fault-injection test's CoWorld command (tests/test_kill.py: the tiny preset on the toy pair, an
 online source phase and offline target phases) with ``--device`` swapped in, on a dataset of random toy episodes
 collected first. It prints one JSON line per step and a last one with the keys of the final checkpoints that
-differ from the never-killed run's, and the largest difference of each. A GPU's kernels need not be bitwise
-deterministic, so the never-killed command runs twice: differences between those two are the device's own, and a
-resume is exact where it differs from the never-killed run no more than that.
+differ from the never-killed run's and the largest differences. On a CPU a resume is exact: no leaf differs. A
+GPU's kernels need not be bitwise deterministic, so the never-killed command runs twice: the differences between
+those two are the device's own, the yardstick for the resumed run's.
 
 Usage::
 
@@ -88,17 +88,14 @@ def differences(a: Any, b: Any, key: str = "") -> dict[str, float]:
     if isinstance(a, torch.Tensor) and isinstance(b, torch.Tensor):
         if a.shape != b.shape or a.dtype != b.dtype:
             return {key: float("inf")}
-        if torch.equal(a, b):
-            return {}
-        if a.is_floating_point():
-            return {key: float((a.double() - b.double()).abs().max())}
-        return {key: float("inf")}
+        return {} if torch.equal(a, b) else {key: float((a.double() - b.double()).abs().max())}
     return {} if a == b else {key: float("inf")}
 
 
 def summary(diff: dict[str, float]) -> dict[str, Any]:
     worst = sorted(diff.items(), key=lambda kv: -kv[1])[:5]
-    return {"leaves_differing": len(diff), "largest": worst}
+    floats = [v for k, v in diff.items() if not k.endswith("/obs")]  # frames: whole pixel values apart
+    return {"leaves_differing": len(diff), "largest_not_frames": max(floats, default=0.0), "largest": worst}
 
 
 def main() -> None:
@@ -133,8 +130,7 @@ def main() -> None:
     final = {name: load_checkpoint(root / name / "checkpoint.pt") for name in ("killed", "whole", "whole-again")}
     own = differences(final["whole"], final["whole-again"])
     resumed = differences(final["killed"], final["whole"])
-    exact = all(v <= own.get(k, 0.0) for k, v in resumed.items())
-    record(step="compare", resumed_vs_whole=summary(resumed), whole_vs_again=summary(own), exact=exact)
+    record(step="compare", resumed_vs_whole=summary(resumed), whole_vs_again=summary(own))
     if torch.cuda.is_available() and args.device.startswith("cuda"):
         record(step="device", gpu=torch.cuda.get_device_name(), torch=torch.__version__)
     if args.json:

@@ -561,15 +561,16 @@ class Config:
     device: Annotated[str, OneOf(("auto", "cpu", "cuda"), pattern=r"cuda:\d+", pattern_text="cuda:N")] = "auto"
     """'auto' (CUDA when available), 'cpu' or 'cuda'."""
     precision: Annotated[str, OneOf(("auto", "bf16", "fp32"))] = "auto"
-    """'auto' (fp32 on every device), 'bf16' (autocast) or 'fp32'. 'auto' is fp32 on CUDA too because the one GPU
-    measurement found the paper preset's update 1.19x slower in bf16 (bound by kernel launches, not arithmetic;
-    benchmarks/RESULTS.md, "GPU")."""
+    """'auto' (fp32 on every device), 'bf16' (autocast) or 'fp32'. Eager, the paper preset's update on a GPU is
+    bound by kernel launches, not arithmetic, and bf16 made it slower (1.19x); with ``compile`` bf16 is the fastest
+    (2.85x fp32 eager on an H200; benchmarks/RESULTS.md, "GPU"). 'auto' stays fp32, as bf16's learning over a run is
+    unmeasured."""
     compile: bool = False
     """torch.compile the reference world model's loss and the imagination rollout, each as one graph
     (``fullgraph``), and the networks acting calls. Shapes are static: a batch of another size compiles anew. The
-    compiled run takes the reference path (``train.backend``). On a GPU it pays for its compilation (minutes, once
-    per process) within the first few thousand updates of the paper preset; its cost and gain per device are in
-    benchmarks/RESULTS.md."""
+    compiled run takes the reference path (``train.backend``). On a GPU it pays for its compilation (minutes the
+    first time, seconds in a later process that finds inductor's cache on disk) within the first few thousand updates
+    of the paper preset, most with ``precision=bf16``; its cost and gain per device are in benchmarks/RESULTS.md."""
     compile_mode: Annotated[str, OneOf(("default", "max-autotune-no-cudagraphs"))] = "default"
     """torch.compile's ``mode`` where ``compile`` is on: 'max-autotune-no-cudagraphs' also times kernel choices.
     The modes that replay CUDA graphs ('reduce-overhead', 'max-autotune') are refused: their graphs overwrite the

@@ -57,8 +57,8 @@ _OPTIM_KEYS = ("wm_opt", "actor_opt", "critic_opt")
 
 
 def resolve_precision(precision: str, device: torch.device) -> torch.dtype | None:
-    """The autocast dtype: 'auto' -> None (fp32) on every device; 'bf16' -> bf16; 'fp32' -> None. (On one H100 the
-    paper preset's update was 1.19x slower in bf16 than in fp32; benchmarks/RESULTS.md, "GPU".)"""
+    """The autocast dtype: 'auto' -> None (fp32) on every device; 'bf16' -> bf16; 'fp32' -> None (why: the
+    ``precision`` docstring in coworld/config.py)."""
     if precision == "auto":
         return None
     if precision == "bf16":

@@ -249,7 +249,7 @@ def test_resolve_device_and_precision() -> None:
         with pytest.raises(ConfigError, match="no CUDA"):
             resolve_device("cuda")
     assert resolve_precision("auto", cpu) is None
-    assert resolve_precision("auto", torch.device("cuda")) is None  # fp32: bf16 measured slower on a GPU
+    assert resolve_precision("auto", torch.device("cuda")) is None  # fp32: bf16's learning over a run is unmeasured
     assert resolve_precision("bf16", cpu) is torch.bfloat16
     assert resolve_precision("fp32", torch.device("cuda")) is None
     with pytest.raises(ConfigError, match="precision"):
