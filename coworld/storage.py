@@ -112,6 +112,26 @@ def write_text_atomically(path: str | os.PathLike[str], text: str) -> None:
         raise
 
 
+def copy_file_atomically(source: str | os.PathLike[str], path: str | os.PathLike[str]) -> None:
+    """Copy ``source`` to ``path`` under a temporary name in its folder, then rename it into place; a refused write
+    is one StorageError line naming ``path``, and leaves the previous file, or none."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        shutil.copyfile(source, tmp)
+        fsync_path(tmp)
+        os.replace(tmp, path)
+    except OSError as err:
+        tmp.unlink(missing_ok=True)
+        if failure_errno(err) not in WRITE_ERRNOS:
+            raise
+        reason = failure_reason(err)
+        raise StorageError(f"cannot write {path}: {reason}", reason) from None
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
 def fsync_path(path: str | os.PathLike[str]) -> None:
     """Flush a closed file's data to the disk (before renaming it into place)."""
     fd = os.open(path, os.O_RDONLY)

@@ -59,9 +59,38 @@ RESUME = "rerun the same command to resume"
     is_flag=True,
     help="Start the run folder over: what training wrote there (checkpoint, metrics, logs) is removed first.",
 )
+@click.option(
+    "--keep-pretrained",
+    is_flag=True,
+    help="coworld: keep a copy of the run folder as source pretraining leaves it (<logdir>/pretrained), for runs"
+    " started with --pretrained-from.",
+)
+@click.option(
+    "--pretrained-from",
+    "pretrained_from",
+    multiple=True,
+    type=input_path(file_okay=False),
+    metavar="DIR",
+    help="coworld: a run folder whose source pretraining this run shares (its config may differ only in the target"
+    " phases' settings; docs/usage.md); a new run starts from the first that kept one, else pretrains (repeatable).",
+)
 @click.option("--progress/--no-progress", default=True, help="Progress bars.")
 @interrupt.at_safe_points
-def train(target, source, dataset, algo, preset, logdir, seed, device, overrides, force, progress) -> None:
+def train(
+    target,
+    source,
+    dataset,
+    algo,
+    preset,
+    logdir,
+    seed,
+    device,
+    overrides,
+    force,
+    keep_pretrained,
+    pretrained_from,
+    progress,
+) -> None:
     """Train CoWorld or a baseline on a dataset.
 
     Learns from a fixed target dataset (CoWorld, dreamerv2-finetune and dreamerv2-finetune-ewc also learn online
@@ -86,6 +115,8 @@ def train(target, source, dataset, algo, preset, logdir, seed, device, overrides
         device=device,
         overrides=overrides,
         force=force,
+        keep_pretrained=keep_pretrained,
+        pretrained_from=pretrained_from,
     )
     check_writable(job.logdir, "--logdir")
     for warning in job.warnings:

@@ -222,6 +222,20 @@ class SweepSpec:
         """The ``--set`` of one run: the sweep's, then its variant's."""
         return [*self.overrides, *self.variant_overrides(run.variant)]
 
+    def shared_pretraining(self) -> dict[str, tuple[Run, ...]]:
+        """For each CoWorld run of one source, the other runs of the grid whose source pretraining is its own: its
+        tasks and seed, a config apart only in the target phases' settings (:mod:`coworld.training.pretrained`)."""
+        from coworld.training.pretrained import pretraining_difference
+
+        runs = [run for run in self.runs() if run.algo == "coworld" and run.source and "+" not in run.source]
+        configs = {run: make_config(self.preset, [*self.run_overrides(run), f"seed={run.seed}"]) for run in runs}
+
+        def shares(a: Run, b: Run) -> bool:
+            same_place = (a.source, a.target, a.seed) == (b.source, b.target, b.seed)
+            return a != b and same_place and not pretraining_difference(configs[a], configs[b])
+
+        return {run.name: tuple(other for other in runs if shares(run, other)) for run in runs}
+
     def to_dict(self) -> dict[str, Any]:
         return json.loads(json.dumps(dataclasses.asdict(self)))
 

@@ -54,6 +54,8 @@ class Job:
     run_dir: Path | None = None
     algo: str = ""
     """A run's algorithm (how its metrics are read)."""
+    shares: tuple[str, ...] = ()
+    """The runs whose source pretraining is this CoWorld run's (see :func:`coworld.sweep.runner.plan`)."""
 
 
 @dataclass(frozen=True)

@@ -162,9 +162,10 @@ def collect_args(spec: SweepSpec, target: str, out: Path, execution: Execution, 
 
 
 def run_steps(
-    spec: SweepSpec, run: Run, run_dir: Path, dataset: Path, execution: Execution
+    spec: SweepSpec, run: Run, run_dir: Path, dataset: Path, execution: Execution, shares: tuple[Path, ...] = ()
 ) -> tuple[tuple[str, ...], ...]:
-    """The train and eval command lines of one run."""
+    """The train and eval command lines of one run; ``shares``: the run folders whose source pretraining is this
+    CoWorld run's (each keeps its own, and a new run starts from the first kept)."""
     device = ("--device", execution.device) if execution.device is not None else ()
     threads = ("--threads", str(execution.threads))
     train = ["train", "--algo", run.algo, "--target", run.target, "--dataset", str(dataset)]
@@ -173,6 +174,10 @@ def run_steps(
     train += ["--preset", spec.preset, "--logdir", str(run_dir), "--seed", str(run.seed), "--no-progress"]
     for item in spec.run_overrides(run):
         train += ["--set", item]
+    if shares:
+        train.append("--keep-pretrained")
+        for folder in shares:
+            train += ["--pretrained-from", str(folder)]
     evaluate = ["eval", "--ckpt", str(run_dir), "--episodes", str(spec.eval_episodes), "--seed", "0"]
     evaluate += ["--out", str(run_dir / "eval.json.partial")]
     return (*train, *device, *threads), (*evaluate, *device, *threads)
@@ -201,22 +206,26 @@ def plan(spec: SweepSpec, dirs: SweepDirs, execution: Execution) -> Plan:
         )
         collect_job[target] = name
     finished = []
+    siblings = spec.shared_pretraining()
     for run in runs:
         run_dir = dirs.run_dir(run)
         if run_finished(run_dir, spec.eval_episodes):
             finished.append(run.name)
             continue
+        shares = siblings.get(run.name, ())
+        folders = tuple(dirs.run_dir(other) for other in shares)
         jobs.append(
             Job(
                 name=run.name,
                 kind="run",
-                steps=run_steps(spec, run, run_dir, dirs.dataset(run.target, spec), execution),
+                steps=run_steps(spec, run, run_dir, dirs.dataset(run.target, spec), execution, folders),
                 log=dirs.logs / f"{run.name}.log",
                 pid_file=dirs.logs / f"{run.name}.pid",
                 finish=(run_dir / "eval.json.partial", run_dir / "eval.json"),
                 needs=collect_job[run.target],
                 run_dir=run_dir,
                 algo=run.algo,
+                shares=tuple(other.name for other in shares),
             )
         )
     return Plan(jobs, runs, finished)
@@ -437,7 +446,7 @@ def _run_local(plan: Plan, execution: Execution, tracker: _Tracker) -> None:
     restore = _stop_on_sigterm()
     try:
         while pending or active:
-            for job in list(pending):
+            for job in sorted(pending, key=lambda job: _waits_for_pretraining(job, active)):  # stable: grid order
                 if len(active) >= execution.jobs:
                     break
                 if job.needs is not None and job.needs not in outcome:
@@ -465,6 +474,15 @@ def _run_local(plan: Plan, execution: Execution, tracker: _Tracker) -> None:
         for process in active:
             process.stop()
         restore()
+
+
+def _waits_for_pretraining(job: Job, active: list[JobProcess]) -> bool:
+    """Whether a run shares the source pretraining that a running run is doing now (it has no checkpoint of its own
+    yet, which it writes once it kept its pretraining): it had better start after the jobs that wait for nothing,
+    and then copy that pretraining rather than do its own."""
+    from coworld.training.checkpoint import CHECKPOINT_NAME
+
+    return any(p.job.name in job.shares and not (p.job.run_dir / CHECKPOINT_NAME).exists() for p in active)
 
 
 def _stop_on_sigterm() -> Callable[[], None]:

@@ -17,16 +17,19 @@ written after every phase, its :class:`Progress` naming the next, with the sourc
 episodes among it), so a stopped run resumes at that phase's start with its source replay cut back to the checkpoint
 and goes on exactly as an uninterrupted one (the same batches, source steps and weights); stopped while pretraining,
 it resumes that way from the last source checkpoint (:meth:`~coworld.training.online.OnlineTrainer.restore`).
+Runs that differ only in what the target phases read can share one pretraining (:mod:`coworld.training.pretrained`).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import torch
+from tqdm import tqdm
 
 from coworld import interrupt
 from coworld.agents.coworld import CoWorld
@@ -37,6 +40,7 @@ from coworld.data.prefetch import Prefetcher, stop_prefetch
 from coworld.envs import task_spec
 from coworld.errors import CheckpointError
 from coworld.progress import progress_bar
+from coworld.training import pretrained
 from coworld.training.checkpoint import CHECKPOINT_NAME, load_checkpoint, rng_state, save_checkpoint, set_rng_state
 from coworld.training.choice import restore_warm_target, settle_source
 from coworld.training.evaluate import evaluate
@@ -68,6 +72,8 @@ def train_coworld(job: TrainJob, *, device: torch.device, resumed: bool, progres
     dataset = open_dataset(job.dataset)
     try:
         job, warm_target = settle_source(job, dataset=dataset, device=device, progress=progress)
+        if job.pretrained_from:
+            start_from_shared_pretraining(job)
         writer = source_replay_writer(job.logdir, str(job.source), algorithm="coworld", seed=job.config.seed)
         with Logger(job.logdir) as logger, writer:
             algorithm = Algorithm1(job, dataset, device=device, logger=logger, writer=writer, progress=progress)
@@ -78,6 +84,15 @@ def train_coworld(job: TrainJob, *, device: torch.device, resumed: bool, progres
                 algorithm.close()
     finally:
         dataset.close()
+
+
+def start_from_shared_pretraining(job: TrainJob) -> None:
+    """A new run's folder seeded with the first ``--pretrained-from`` run's kept pretraining, where one has it."""
+    donor = pretrained.start_from(Path(job.logdir), job.pretrained_from, job.config)
+    if donor is not None:
+        tqdm.write(f"source pretraining copied from {donor / pretrained.SNAPSHOT}", file=sys.stderr)
+    elif not (Path(job.logdir) / CHECKPOINT_NAME).exists():
+        tqdm.write("no --pretrained-from run has kept its pretraining yet: pretraining here", file=sys.stderr)
 
 
 class Algorithm1:
@@ -139,9 +154,12 @@ class Algorithm1:
         }
 
     def pretrain_source(self) -> None:
-        """The source agent alone, online, for ``coworld.pretrain_steps`` source environment steps."""
+        """The source agent alone, online, for ``coworld.pretrain_steps`` source environment steps (a copy of the run
+        as it then stands kept with ``--keep-pretrained``)."""
         self.source.run(max_steps=self.cfg.pretrain_steps, progress=self.show_progress, cut_episodes=False)
         self.state.phase = "target"
+        if self.job.keep_pretrained:
+            pretrained.keep(Path(self.job.logdir), self.checkpoint())
         self.save()
 
     def begin_iteration(self) -> None:
@@ -199,22 +217,23 @@ class Algorithm1:
 
     # -- checkpoints ----------------------------------------------------------------------------------------------
     def save(self) -> None:
-        save_checkpoint(
-            self.checkpoint_path,
-            {
-                "kind": CHECKPOINT_KIND,
-                "task": self.job.target,
-                "source_task": self.job.source,
-                "config": to_dict(self.config),
-                "agent": self.agent.target.state_dict(),
-                "source": self.agent.source.state_dict(),
-                "source_updates": self.source.updates,
-                "source_online": self.source.online_state(),
-                "progress": dataclasses.asdict(self.state),
-                "rng": rng_state(),
-                **self.policy_value_state(),
-            },
-        )
+        save_checkpoint(self.checkpoint_path, self.checkpoint())
+
+    def checkpoint(self) -> dict[str, Any]:
+        """The combined checkpoint: both agents, the source trainer's online state, where the schedule stands."""
+        return {
+            "kind": CHECKPOINT_KIND,
+            "task": self.job.target,
+            "source_task": self.job.source,
+            "config": to_dict(self.config),
+            "agent": self.agent.target.state_dict(),
+            "source": self.agent.source.state_dict(),
+            "source_updates": self.source.updates,
+            "source_online": self.source.online_state(),
+            "progress": dataclasses.asdict(self.state),
+            "rng": rng_state(),
+            **self.policy_value_state(),
+        }
 
     def policy_value_state(self) -> dict[str, Any]:
         """The target-policy critic's entry of a checkpoint, where the run has one: it learns from the first source

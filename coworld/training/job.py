@@ -85,6 +85,10 @@ class TrainJob:
     """``--force``: what training wrote in the run folder is removed first, and the run starts afresh."""
     warnings: tuple[str, ...] = ()
     """Things worth telling the user before a long run starts (one line each)."""
+    keep_pretrained: bool = False
+    """CoWorld: keep a copy of the run folder as source pretraining leaves it (:mod:`coworld.training.pretrained`)."""
+    pretrained_from: tuple[Path, ...] = ()
+    """CoWorld: run folders whose pretraining this run's is; a new run starts from the first that kept one."""
 
     def info(self) -> dict[str, Any]:
         return {

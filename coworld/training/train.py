@@ -69,12 +69,15 @@ def check_job(
     device: str | None,
     overrides: Sequence[str],
     force: bool = False,
+    keep_pretrained: bool = False,
+    pretrained_from: Sequence[str | Path] = (),
 ) -> TrainJob:
     """Validate a training request without writing anything; raises CoworldError with one line on any problem.
 
     Everything a run would trip over later is checked here: the config's rules between keys and its memory
     (:func:`check_config`), the dataset against the sequences sampled from it, and a resumed run folder's
     checkpoint. ``force``: a run folder of other settings is started over (:attr:`TrainJob.start_over`).
+    ``keep_pretrained``, ``pretrained_from``: CoWorld's shared source pretraining (coworld.training.pretrained).
     """
     from coworld.training.run import check_run_dir, preset_warnings
 
@@ -117,8 +120,20 @@ def check_job(
         resume = check_run_dir(run_dir, config, job.info())
     if resume:
         check_resumable(run_dir, config, job.info())
+    donors = tuple(Path(d) for d in pretrained_from)
+    if donors or keep_pretrained:
+        from coworld.training.pretrained import check_donors
+
+        check_donors(donors, config=config, info=job.info())
     warnings += preset_warnings(preset, config.device, algo)
-    return dataclasses.replace(job, resume=resume, start_over=force, warnings=tuple(warnings))
+    return dataclasses.replace(
+        job,
+        resume=resume,
+        start_over=force,
+        warnings=tuple(warnings),
+        keep_pretrained=keep_pretrained,
+        pretrained_from=donors,
+    )
 
 
 def check_config(algo: str, config: Config, action_size: int) -> None:

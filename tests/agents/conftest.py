@@ -72,12 +72,12 @@ def target_batch() -> Callable[..., dict[str, torch.Tensor]]:
 
 
 @pytest.fixture(scope="session")
-def coworld_toy_job() -> Callable[[Path, Path, list[str]], Any]:
-    """``(dataset, logdir, overrides) -> job``: a checked CoWorld job on toy_reach -> toy_reach_shifted, tiny
-    preset, seed 0."""
+def coworld_toy_job() -> Callable[..., Any]:
+    """``(dataset, logdir, overrides, **check_job's other arguments) -> job``: a checked CoWorld job on toy_reach ->
+    toy_reach_shifted, tiny preset, seed 0."""
     from coworld.training.train import check_job
 
-    def job(dataset: Path, logdir: Path, overrides: list[str]) -> Any:
+    def job(dataset: Path, logdir: Path, overrides: list[str], **extra: Any) -> Any:
         return check_job(
             algo="coworld",
             source="toy_reach",
@@ -88,6 +88,7 @@ def coworld_toy_job() -> Callable[[Path, Path, list[str]], Any]:
             seed=0,
             device="cpu",
             overrides=overrides,
+            **extra,
         )
 
     return job

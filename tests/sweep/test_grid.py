@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from types import SimpleNamespace
 
 import pytest
 
@@ -14,12 +15,22 @@ from coworld.sweep.grid import (
     Run,
     SweepSpec,
     build_spec,
+    cap_study_table,
     named_table,
     parse_pairs,
     read_grid_file,
     seeds_from,
 )
-from coworld.sweep.runner import SPEC_FILE, Execution, SweepDirs, check_spec, collect_args, plan, run_steps
+from coworld.sweep.runner import (
+    SPEC_FILE,
+    Execution,
+    SweepDirs,
+    _waits_for_pretraining,
+    check_spec,
+    collect_args,
+    plan,
+    run_steps,
+)
 
 TOY = (("toy_reach", "toy_reach_shifted"),)
 
@@ -286,6 +297,30 @@ def test_commands_of_a_run_and_a_dataset(tmp_path):
     collect = collect_args(spec, "toy_reach_shifted", dataset, execution, resume=True)
     assert collect[collect.index("--policy") + 1] == "random" and "--resume" in collect and "--preset" not in collect
     assert collect[collect.index("--episodes") + 1] == str(spec.data.episodes)
+
+
+def test_coworld_runs_that_pretrain_alike_share_their_pretraining_and_wait_for_it(tmp_path):
+    spec = cap_study_table()
+    dirs = SweepDirs.at(tmp_path)
+    jobs = {job.name: job for job in plan(spec, dirs, Execution()).jobs}
+    name = "coworld-{}cheetah_run-cheetah_uphill-s{}".format
+    zeta3 = jobs[name("zeta3-", 1)]
+    train = zeta3.steps[0]
+    shared = [train[i + 1] for i, arg in enumerate(train) if arg == "--pretrained-from"]
+    siblings = [name(variant, 1) for variant in ("", "zeta10-", "later-dmc-", "4x-")]  # seed 1's, apart in zeta & co.
+    assert shared == [str(dirs.runs / sibling) for sibling in siblings] and "--keep-pretrained" in train
+    assert zeta3.shares == tuple(siblings)
+    policy_critic = jobs[name("target-policy-", 1)]  # its critic learns while pretraining: none shares it
+    assert policy_critic.shares == () and "--keep-pretrained" not in policy_critic.steps[0]
+    assert all(job.shares == () for job in jobs.values() if job.algo != "coworld")
+
+    first = jobs[name("", 1)]
+    running = [SimpleNamespace(job=first)]
+    assert _waits_for_pretraining(zeta3, running)  # its pretraining is being done
+    assert not _waits_for_pretraining(policy_critic, running) and not _waits_for_pretraining(zeta3, [])
+    first.run_dir.mkdir(parents=True)
+    (first.run_dir / "checkpoint.pt").touch()  # written once the pretraining is kept
+    assert not _waits_for_pretraining(zeta3, running)
 
 
 def test_plan_skips_finished_runs_and_complete_datasets(tmp_path, toy_dataset_writer):

@@ -97,6 +97,21 @@ def test_kill9_in_the_middle_then_the_same_command_finishes_without_redoing(tmp_
     assert again.returncode == 0 and "3 runs, 3 finished, 0 to run" in again.stderr
 
 
+def test_coworld_variants_apart_in_zeta_pretrain_once(tmp_path):
+    """The second run starts from the source pretraining the first kept, and both finish."""
+    grid_file = grid(tmp_path, ["coworld"], 1)
+    variants = '[variants]\n"" = []\nzeta3 = ["coworld.zeta=3"]\n\n[data]'
+    grid_file.write_text(grid_file.read_text().replace("[data]", variants))
+    root = tmp_path / "sweep"
+    out = subprocess.run(sweep_args(grid_file, root, "--jobs", "1"), capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0, out.stderr[-3000:]
+    first, second = (f"coworld-{v}toy_reach-toy_reach_shifted-s0" for v in ("", "zeta3-"))
+    kept = root / "runs" / first / "pretrained"
+    assert (kept / "checkpoint.pt").exists() and not (root / "runs" / second / "pretrained").exists()
+    assert f"source pretraining copied from {kept}" in (root / "logs" / f"{second}.log").read_text()
+    assert all((root / "runs" / name / "eval.json").exists() for name in (first, second))
+
+
 def test_a_failed_run_is_reported_and_the_others_finish(tmp_path):
     root = tmp_path / "sweep"
     broken = root / "runs" / "curl-toy_reach_shifted-s1"
