@@ -71,17 +71,38 @@ def target_batch() -> Callable[..., dict[str, torch.Tensor]]:
     return make_target_batch
 
 
+TOY_SCHEDULE = (
+    "device=cpu",
+    "train.prefill=50",
+    "train.pretrain_updates=2",
+    "train.train_every=5",
+    "train.eval_episodes=1",
+    "coworld.pretrain_steps=100",
+    "coworld.iterations=2",
+    "coworld.target_updates=2",
+    "coworld.source_updates=15",
+)
+"""A whole CoWorld run in seconds: 2 + (100 - 50) / 5 + 1 = 13 pretraining updates, then 2 iterations of 2 target
+and 15 source updates."""
+
+
+@pytest.fixture(scope="session")
+def toy_schedule() -> list[str]:
+    """:data:`TOY_SCHEDULE`, the overrides of a CoWorld run in seconds."""
+    return list(TOY_SCHEDULE)
+
+
 @pytest.fixture(scope="session")
 def coworld_toy_job() -> Callable[..., Any]:
-    """``(dataset, logdir, overrides, **check_job's other arguments) -> job``: a checked CoWorld job on toy_reach ->
-    toy_reach_shifted, tiny preset, seed 0."""
+    """``(dataset, logdir, overrides, target=..., **check_job's other arguments) -> job``: a checked CoWorld job on
+    toy_reach -> toy_reach_shifted (or ``target``), tiny preset, seed 0."""
     from coworld.training.train import check_job
 
-    def job(dataset: Path, logdir: Path, overrides: list[str], **extra: Any) -> Any:
+    def job(dataset: Path, logdir: Path, overrides: list[str], target: str = "toy_reach_shifted", **extra: Any) -> Any:
         return check_job(
             algo="coworld",
             source="toy_reach",
-            target="toy_reach_shifted",
+            target=target,
             dataset=dataset,
             preset="tiny",
             logdir=logdir,

@@ -23,18 +23,6 @@ from coworld.viz.runs import load_run_models
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
-SCHEDULE = [
-    "device=cpu",
-    "train.prefill=50",
-    "train.pretrain_updates=2",
-    "train.train_every=5",
-    "train.eval_episodes=1",
-    "coworld.pretrain_steps=100",
-    "coworld.iterations=2",
-    "coworld.target_updates=2",
-    "coworld.source_updates=15",
-]
-
 
 def test_pad_action_zero_pads_at_the_end_and_refuses_a_wider_action() -> None:
     action = torch.tensor([[0.5, -1.0]])
@@ -76,20 +64,10 @@ def test_the_source_model_reads_every_target_action_component_and_its_own_action
 
 
 def test_a_run_across_action_sizes_trains_resumes_and_evaluates(
-    tmp_path: Path, toy_dataset_writer, monkeypatch: pytest.MonkeyPatch
+    tmp_path: Path, toy_dataset_writer, coworld_toy_job, toy_schedule, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     dataset = toy_dataset_writer(tmp_path / "target.h5", "toy_reach_shifted_act3", episodes=3)
-    job = check_job(
-        algo="coworld",
-        source="toy_reach",
-        target="toy_reach_shifted_act3",
-        dataset=dataset,
-        preset="tiny",
-        logdir=tmp_path / "run",
-        seed=0,
-        device="cpu",
-        overrides=SCHEDULE,
-    )
+    job = coworld_toy_job(dataset, tmp_path / "run", toy_schedule, target="toy_reach_shifted_act3")
     original = CoWorld.train_source
     calls = {"n": 0}
 
@@ -104,17 +82,7 @@ def test_a_run_across_action_sizes_trains_resumes_and_evaluates(
         run_job(job, progress=False)
     assert torch.load(tmp_path / "run" / "checkpoint.pt", weights_only=True)["progress"]["phase"] == "source"
     monkeypatch.setattr(CoWorld, "train_source", original)
-    resumed = check_job(
-        algo="coworld",
-        source="toy_reach",
-        target="toy_reach_shifted_act3",
-        dataset=dataset,
-        preset="tiny",
-        logdir=tmp_path / "run",
-        seed=0,
-        device="cpu",
-        overrides=SCHEDULE,
-    )
+    resumed = coworld_toy_job(dataset, tmp_path / "run", toy_schedule, target="toy_reach_shifted_act3")
     assert resumed.resume
     summary = run_job(resumed, progress=False)
     assert summary["iterations"] == 2

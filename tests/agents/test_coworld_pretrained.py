@@ -20,16 +20,6 @@ from coworld.training.train import check_job, run_job
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
-SCHEDULE = [
-    "train.prefill=50",
-    "train.pretrain_updates=2",
-    "train.train_every=5",
-    "train.eval_episodes=1",
-    "coworld.pretrain_steps=100",
-    "coworld.iterations=2",
-    "coworld.target_updates=2",
-    "coworld.source_updates=10",
-]
 ON = [
     "coworld.iterations=3",
     "coworld.target_updates=3",
@@ -57,15 +47,15 @@ OFF = [
 
 
 def test_the_settings_shared_leave_pretraining_alone_and_a_run_from_shared_pretraining_ends_as_its_own(
-    tmp_path: Path, toy_dataset_writer, coworld_toy_job
+    tmp_path: Path, toy_dataset_writer, coworld_toy_job, toy_schedule
 ) -> None:
-    job = coworld_toy_job
+    job, schedule = coworld_toy_job, toy_schedule
     assert {o.split("=")[0] for o in ON + OFF} == SHARED_KEYS  # the test changes every key the module names
     dataset = toy_dataset_writer(tmp_path / "target.h5", "toy_reach_shifted", episodes=3)
     runs = {name: tmp_path / name for name in ("a", "on", "off", "on-shared")}
-    run_job(job(dataset, runs["a"], SCHEDULE, keep_pretrained=True), progress=False)
-    run_job(job(dataset, runs["on"], SCHEDULE + ON, keep_pretrained=True), progress=False)
-    run_job(job(dataset, runs["off"], SCHEDULE + OFF, keep_pretrained=True), progress=False)
+    run_job(job(dataset, runs["a"], schedule, keep_pretrained=True), progress=False)
+    run_job(job(dataset, runs["on"], schedule + ON, keep_pretrained=True), progress=False)
+    run_job(job(dataset, runs["off"], schedule + OFF, keep_pretrained=True), progress=False)
     kept = {name: _load(runs[name] / SNAPSHOT / "checkpoint.pt") for name in ("a", "on", "off")}
     assert kept["a"]["progress"] == {"iteration": 0, "phase": "target", "last_eval": None}
     for name in ("on", "off"):
@@ -76,7 +66,7 @@ def test_the_settings_shared_leave_pretraining_alone_and_a_run_from_shared_pretr
 
     not_started = tmp_path / "not-started"  # a sweep's run folder before its run: passed over
     not_started.mkdir()
-    shared = job(dataset, runs["on-shared"], SCHEDULE + ON, pretrained_from=[not_started, runs["a"]])
+    shared = job(dataset, runs["on-shared"], schedule + ON, pretrained_from=[not_started, runs["a"]])
     summary = run_job(shared, progress=False)
     assert summary["iterations"] == 3
     own, from_shared = _load(runs["on"] / "checkpoint.pt"), _load(runs["on-shared"] / "checkpoint.pt")
@@ -97,11 +87,12 @@ def test_the_settings_shared_leave_pretraining_alone_and_a_run_from_shared_pretr
     ],
 )
 def test_a_run_whose_pretraining_differs_is_refused_before_anything_is_written(
-    overrides: list[str], algo: str, message: str, tmp_path: Path, toy_dataset_writer, coworld_toy_job
+    overrides: list[str], algo: str, message: str, tmp_path: Path, toy_dataset_writer, coworld_toy_job, toy_schedule
 ) -> None:
+    schedule = toy_schedule
     dataset = toy_dataset_writer(tmp_path / "target.h5", "toy_reach_shifted", episodes=3)
     donor = tmp_path / "donor"
-    described = coworld_toy_job(dataset, donor, SCHEDULE + OFF)
+    described = coworld_toy_job(dataset, donor, schedule + OFF)
     prepare_run_dir(donor, described.config, described.info())  # a run folder, described by its config
     with pytest.raises(CoworldError, match=message.replace("(", r"\(").replace(")", r"\)")):
         check_job(
@@ -113,7 +104,7 @@ def test_a_run_whose_pretraining_differs_is_refused_before_anything_is_written(
             logdir=tmp_path / "new",
             seed=0,
             device="cpu",
-            overrides=SCHEDULE + OFF + overrides,
+            overrides=schedule + OFF + overrides,
             pretrained_from=[donor],
         )
     assert not (tmp_path / "new").exists()

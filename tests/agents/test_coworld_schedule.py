@@ -22,29 +22,17 @@ from coworld.training.train import run_job
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
-SCHEDULE = [
-    "device=cpu",
-    "train.prefill=50",
-    "train.pretrain_updates=2",
-    "train.train_every=5",
-    "train.eval_episodes=1",
-    "coworld.pretrain_steps=100",
-    "coworld.iterations=2",
-    "coworld.target_updates=2",
-    "coworld.source_updates=15",
-]
-
 
 def test_a_run_killed_inside_a_source_phase_resumes_to_the_weights_of_an_uninterrupted_run(
-    tmp_path: Path, toy_dataset_writer, coworld_toy_job, monkeypatch: pytest.MonkeyPatch
+    tmp_path: Path, toy_dataset_writer, coworld_toy_job, toy_schedule, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """Killed mid-episode in its first source phase, the rerun cuts the source replay back to the phase's checkpoint,
     makes the running source episodes again from their seeds and actions, and ends with the very weights, source steps
     and source replay of a run never stopped, never making two source updates without a step between them."""
     dataset = toy_dataset_writer(tmp_path / "target.h5", "toy_reach_shifted", episodes=3)
-    run_job(coworld_toy_job(dataset, tmp_path / "whole", SCHEDULE), progress=False)
+    run_job(coworld_toy_job(dataset, tmp_path / "whole", toy_schedule), progress=False)
     whole = torch.load(tmp_path / "whole" / "checkpoint.pt", weights_only=True)
-    job = coworld_toy_job(dataset, tmp_path / "run", SCHEDULE)
+    job = coworld_toy_job(dataset, tmp_path / "run", toy_schedule)
     original_train_source = CoWorld.train_source
     calls = {"n": 0}
 
