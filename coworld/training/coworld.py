@@ -158,9 +158,10 @@ class Algorithm1:
         as it then stands kept with ``--keep-pretrained``)."""
         self.source.run(max_steps=self.cfg.pretrain_steps, progress=self.show_progress, cut_episodes=False)
         self.state.phase = "target"
+        state = self.checkpoint()
         if self.job.keep_pretrained:
-            pretrained.keep(Path(self.job.logdir), self.checkpoint())
-        self.save()
+            pretrained.keep(Path(self.job.logdir), state)
+        save_checkpoint(self.checkpoint_path, state)
 
     def begin_iteration(self) -> None:
         """The iteration's stream of target batches, laid out for the world models (the target phase's own with the

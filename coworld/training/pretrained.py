@@ -3,10 +3,10 @@ pretraining instead of each pretraining a source agent of its own.
 
 Algorithm 1's line 3 trains the source agent alone, online (:meth:`~coworld.training.coworld.Algorithm1.
 pretrain_source`): the target agent is built and left as built, and no term of Eqs. 3-6 runs, so none of
-:data:`SHARED_KEYS` is read. Runs whose configs differ only there pretrain to the same bits (tests/training/
-test_pretrained.py changes every one of them). A run started with ``--keep-pretrained`` keeps a copy of its folder
-as pretraining left it, ``pretrained/``; a new run started with ``--pretrained-from DIR`` copies DIR's in and
-resumes from it as from a stop, so it ends with the weights it would have had after pretraining itself.
+:data:`SHARED_KEYS` is read. Runs whose configs differ only there pretrain to the same bits
+(tests/agents/test_coworld_pretrained.py changes every one of them). A run started with ``--keep-pretrained`` keeps
+a copy of its folder as pretraining left it, ``pretrained/``; a new run started with ``--pretrained-from DIR`` copies
+DIR's in and resumes from it as from a stop, so it ends with the weights it would have had after pretraining itself.
 """
 
 from __future__ import annotations
