@@ -15,8 +15,10 @@ from types import ModuleType
 import pytest
 import torch
 
+from coworld.config import make_config
 from coworld.data import open_dataset, verify_dataset
 from coworld.errors import StorageError
+from coworld.training import pretrained
 from coworld.training.checkpoint import load_checkpoint, save_checkpoint
 
 MiB = 2**20
@@ -117,6 +119,29 @@ def test_a_full_disk_keeps_the_previous_checkpoint(small_disk, tmp_path: Path) -
             save_checkpoint(path, {"kind": "test", "weights": torch.zeros(2 * MiB // 4)})
     assert [p.name for p in disk.path.iterdir()] == ["checkpoint.pt"]
     assert torch.equal(load_checkpoint(path)["weights"], torch.ones(MiB // 16))
+
+
+def test_a_full_disk_while_keeping_pretraining_leaves_no_copy_marked_whole(small_disk) -> None:
+    disk = small_disk(4 * MiB, file_size=3 * MiB // 2)  # room for the copied replay, not for the checkpoint after it
+    run, later = disk.path / "run", disk.path / "later"
+    run.mkdir()
+    later.mkdir()
+    (run / "source_replay.h5").write_bytes(bytes(range(256)) * (MiB // 256))
+    (run / "metrics.jsonl").write_text('{"step": 0}\n')
+    state = {"kind": "test", "weights": torch.ones(2 * MiB // 4)}
+    with disk.limited():
+        with pytest.raises(StorageError, match=r"^cannot save checkpoint .*pretrained/checkpoint\.pt: "):
+            pretrained.keep(run, state)
+    assert sorted(p.name for p in (run / pretrained.SNAPSHOT).iterdir()) == ["metrics.jsonl", "source_replay.h5"]
+    assert pretrained.start_from(later, [run], make_config("tiny")) is None  # no checkpoint: not a whole copy
+    assert list(later.iterdir()) == []
+
+    disk.grow(32 * MiB)
+    with disk.limited():
+        pretrained.keep(run, state)  # the rerun keeps it whole
+        assert pretrained.start_from(later, [run], make_config("tiny")) == run
+    assert (later / "source_replay.h5").read_bytes() == (run / "source_replay.h5").read_bytes()
+    assert torch.equal(load_checkpoint(later / "checkpoint.pt")["weights"], state["weights"])
 
 
 def test_a_full_disk_during_training_keeps_the_last_checkpoint_and_the_rerun_finishes(
