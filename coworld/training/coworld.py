@@ -212,6 +212,7 @@ class Algorithm1:
         workers = min(train.envs, episodes)
         result, _ = evaluate(self.agent, target, episodes=episodes, workers=workers, seed=seed, discount=discount)
         self.state.last_eval = result.mean
+        self._show()
         step = self.agent.target.updates
         self.logger.log(result.metrics(), step, unit="target_update")
         log_open_loop(self.logger, self.agent, self.dataset, step, tag=f"openl/{target}", unit="target_update")
