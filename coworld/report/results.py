@@ -172,19 +172,9 @@ def source_steps(records: list[dict[str, Any]]) -> int | None:
 
 
 def _elapsed(records: list[dict[str, Any]]) -> list[float | None]:
-    """Training seconds at each record, summed over the run's segments (a resumed run's logger restarts its
-    clock); None for a record without a time."""
-    total, last, out = 0.0, None, []
-    for record in records:
-        t = record.get("time")
-        if not _is_step(t):
-            out.append(None)
-            continue
-        if last is not None and t < last:
-            total += last
-        last = float(t)
-        out.append(total + last)
-    return out
+    """Training seconds at each record (summed over a resumed run's segments by :func:`_one_segment`); None for a
+    record without a time."""
+    return [float(r["time"]) if _is_step(r.get("time")) else None for r in records]
 
 
 def _wall_time(records: list[dict[str, Any]]) -> float | None:
@@ -254,7 +244,29 @@ def _metrics(run_dir: Path, problems: list[str]) -> list[dict[str, Any]]:
     good = [r for r in records if isinstance(r, dict) and _is_step(r.get("step"))]
     if len(good) < len(records):
         problems.append(f"{run_dir / 'metrics.jsonl'}: {len(records) - len(good)} records without a step skipped")
-    return good
+    return _one_segment(good)
+
+
+def _one_segment(records: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """A resumed run's records as those of one run. The logger's clock restarts with each segment: each record's
+    ``time`` becomes the training seconds since the run began, summed over segments. A resume redoes what followed
+    its checkpoint and logs it again (the same unit, step and metrics): of those records the last stays."""
+    total, last, timed = 0.0, None, []
+    for record in records:
+        t = record.get("time")
+        if _is_step(t):
+            if last is not None and t < last:
+                total += last
+            last = float(t)
+            record = {**record, "time": total + last}
+        timed.append(record)
+    seen, kept = set(), []
+    for record in reversed(timed):
+        key = (record.get("unit"), record["step"], frozenset(record) - {"time"})
+        if key not in seen:
+            seen.add(key)
+            kept.append(record)
+    return kept[::-1]
 
 
 def read_run_metrics(run_dir: Path) -> list[dict[str, Any]]:

@@ -20,7 +20,14 @@ from coworld.report import results as results_module
 from coworld.report import write_report
 from coworld.report.diagnostics import cap_curve, diagnostics_table, series
 from coworld.report.plots import curve_runs, mean_band
-from coworld.report.results import find_run_dirs, learning_curve, load_result, load_results, wall_clock_curve
+from coworld.report.results import (
+    find_run_dirs,
+    learning_curve,
+    load_result,
+    load_results,
+    read_run_metrics,
+    wall_clock_curve,
+)
 from coworld.report.tables import iqm_interval, label_order, results_table, value_table
 
 
@@ -216,6 +223,27 @@ def test_curves_keep_the_target_evaluations_of_coworld(tmp_path):
     steps, mean, std = mean_band([[(100, 1.0), (200, 3.0)], [(100, 3.0), (200, 5.0)], [(100, 2.0)]])
     assert steps.tolist() == [100, 200] and mean.tolist() == [2.0, 4.0]
     assert std.tolist() == pytest.approx([np.std([1, 3, 2]), 1.0])
+
+
+def test_a_resumed_runs_records_count_once(tmp_path):
+    # killed after its update-200 log, resumed from the checkpoint at update 100: the resume logs 200 again
+    train = {"unit": "target_update", "target/coworld/maxmin_active": 0.5}
+    records = [
+        {**train, "step": 100, "time": 9.0},
+        {"unit": "target_update", "step": 100, "time": 10.0, "eval/return": 4.0, "eval/value_estimate": 1.0},
+        {**train, "step": 200, "time": 12.0, "target/coworld/maxmin_active": 0.0},
+        {**train, "step": 200, "time": 2.0},  # the rerun's clock starts again
+        {"unit": "target_update", "step": 200, "time": 3.0, "eval/return": 6.0, "eval/value_estimate": 1.0},
+    ]
+    run = make_run(tmp_path, "cw", algo="coworld", source="toy_reach", target="toy_reach_shifted", seed=0,
+                   records=records)  # fmt: skip
+    kept = read_run_metrics(run)
+    assert [(r["step"], r["time"]) for r in kept] == [(100, 9.0), (100, 10.0), (200, 14.0), (200, 15.0)]
+    assert [r["target/coworld/maxmin_active"] for r in kept[::2]] == [0.5, 0.5]  # the rerun's log, not the lost one
+    assert learning_curve(run, "coworld") == [(100, 4.0), (200, 6.0)]
+    assert load_result(run).wall_time_s == pytest.approx(12.0 + 3.0)  # the lost segment's time counts
+    hours, _ = zip(*wall_clock_curve(run, "coworld"), strict=True)
+    assert hours == pytest.approx((10.0 / 3600, 15.0 / 3600))
 
 
 def test_ablation_from_plain_runs_and_from_sweep_records(tmp_path, score_scale):
