@@ -5,7 +5,8 @@ Each part runs in a fresh process (so compilation caches and peak-memory counter
 and prints one JSON line per measurement as soon as it has it, so a part cut off by its limit still reports what
 it finished:
 
-* ``update MODE`` (``fp32-eager``, ``bf16-eager``, ``fp32-compile``, ``bf16-compile``; ``fp32-phases``: eager with
+* ``update MODE`` (``fp32-eager``, ``bf16-eager``, ``fp32-compile``, ``bf16-compile``; ``tf32-eager`` and
+  ``tf32-compile``: fp32 with TensorFloat-32 matmuls and convolutions; ``fp32-phases``: eager with
   the CPU path's decoder-phase forms forced onto the GPU, against the reference that ``fp32-eager`` runs):
   DreamerV2's update, then CoWorld's target update and source update (with the relabelled-reward pass over a
   target batch), each on a random batch of the preset's size. Per update: the warm-up's seconds (with compile,
@@ -54,7 +55,7 @@ from coworld.config import PRESETS, Config, make_config  # noqa: E402
 from coworld.devices import resolve_device  # noqa: E402
 from coworld.storage import write_text_atomically  # noqa: E402
 
-MODES = ("bf16-eager", "fp32-eager", "fp32-phases", "bf16-compile", "fp32-compile")
+MODES = ("bf16-eager", "fp32-eager", "tf32-eager", "fp32-phases", "bf16-compile", "fp32-compile", "tf32-compile")
 UPDATES = ("dreamerv2", "coworld target", "coworld source")
 
 
@@ -124,7 +125,10 @@ def time_update(
 
 
 def mode_config(args: argparse.Namespace, mode: str) -> Config:
+    """The preset in ``mode``'s precision and compilation; ``tf32`` is fp32 with TensorFloat-32 matmuls and
+    convolutions, which :func:`part_update` switches on."""
     precision, how = mode.split("-")
+    precision = "fp32" if precision == "tf32" else precision
     return make_config(args.preset, {"device": args.device, "precision": precision, "compile": how == "compile"})
 
 
@@ -143,6 +147,8 @@ def part_update(args: argparse.Namespace, mode: str) -> None:
 
     config = mode_config(args, mode)
     device = resolve_device(args.device)
+    if mode.startswith("tf32"):
+        torch.backends.cuda.matmul.allow_tf32 = torch.backends.cudnn.allow_tf32 = True
     torch.manual_seed(0)
     batch = random_batch(config.train.batch_size, config.train.seq_len, args.action_size)
     _reset_memory(device)
