@@ -22,6 +22,7 @@ from torch import Tensor
 from coworld.agents import coworld as coworld_module
 from coworld.agents.coworld import ALIGN_SOURCE, CoWorld
 from coworld.agents.coworld_feeds import SourceLearner, TargetBatches
+from coworld.agents.dreamerv2 import DreamerV2
 from coworld.config import make_config
 from coworld.data import open_dataset
 from coworld.errors import ConfigError
@@ -505,6 +506,26 @@ def test_target_batches_carry_no_source_pass_when_alignment_is_off(target_batch)
     agent = _agent("coworld.align=false")
     made = TargetBatches(agent, aligned=2, seed=0)
     assert not any(ALIGN_SOURCE in made(target_batch(b=2, t=3)) for _ in range(3))
+
+
+def test_with_eqs_3_and_6_off_a_target_update_is_offline_dreamerv2s(target_batch) -> None:
+    """With alignment and the value cap off, CoWorld's target update is offline DreamerV2's: from the same weights,
+    optimiser states, batches and random state, the same metrics at every update and the same weights after them,
+    the world model alone first (``train.actor_warmup``) and then both. So the cap study's arm without alignment
+    differs from offline DreamerV2 in Eq. 6 alone, and CoWorld with both off in nothing."""
+    agent = _agent("coworld.align=false", "coworld.value_reg=false", "train.actor_warmup=1")
+    plain = DreamerV2(config=agent.config, action_size=2, device="cpu")
+    plain.load_state_dict(agent.target.state_dict())
+    for step in range(3):
+        batch = target_batch(b=2, t=4)
+        torch.manual_seed(step)
+        got = agent.train_target(batch)
+        torch.manual_seed(step)
+        want = plain.train(batch)
+        assert got == {f"target/{key}": value for key, value in want.items()}, step
+        assert ("target/critic/value" in got) == (step >= 1), step
+    for module in ("world_model", "actor_critic"):
+        assert _unchanged(_snapshot(getattr(plain, module)), getattr(agent.target, module)), module
 
 
 def test_both_updates_imagine_from_the_batchs_true_terminal_flags(target_batch) -> None:
