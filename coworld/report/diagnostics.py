@@ -158,6 +158,16 @@ def actor_critic_table(results: Sequence[RunResult]) -> str:
     return target_table(results, ACTOR_CRITIC_TERMS)
 
 
+def critic_curve(records: Sequence[Mapping[str, Any]]) -> list[tuple[int, float]]:
+    """(update, critic value on imagined states) at each log of an offline run's updates on the target dataset: an
+    uncapped critic's path, beside CoWorld's capped ones."""
+    return [
+        (int(r["step"]), float(r["critic/value"]))
+        for r in records
+        if r.get("unit") in TARGET_UNITS and _finite(r.get("critic/value"))
+    ]
+
+
 def cap_curve(records: Sequence[Mapping[str, Any]], zeta: float) -> list[tuple[int, float, float]]:
     """(target update, target critic, cap) at each log where both critics' values on the imagined target states were
     logged: the cap is the capping critic's value over ``zeta``, the level Eq. 6 holds the target critic under."""

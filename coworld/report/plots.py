@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from coworld.errors import CoworldError
-from coworld.report.diagnostics import cap_curve
+from coworld.report.diagnostics import cap_curve, critic_curve
 from coworld.report.results import ONLINE_ALGO, RunResult, learning_curve, read_run_metrics, wall_clock_curve
 from coworld.report.tables import label_order
 from coworld.text import count
@@ -173,7 +173,8 @@ def _two_three_five(value: float, _position: int) -> str:
 
 def cap_curves(results: Sequence[RunResult], path: Path) -> bool:
     """Per target (subplot), each CoWorld label's target critic (solid) and the cap on it, the capping critic's value
-    over the run's zeta (dashed), mean over seeds at each log; False (nothing written) when no run logged them."""
+    over the run's zeta (dashed), and offline DreamerV2's critic, uncapped (black and greys, one per label), each
+    mean over seeds at each log; False (nothing written) when no CoWorld run logged its critics."""
     runs = [r for r in results if r.algo == "coworld"]
     curves = {}
     for r in runs:
@@ -183,17 +184,28 @@ def cap_curves(results: Sequence[RunResult], path: Path) -> bool:
     targets = list(dict.fromkeys(r.target for r in runs if r.run_dir in curves))
     if not targets:
         return False
+    uncapped = {}
+    for r in results:
+        curve = critic_curve(read_run_metrics(Path(r.run_dir))) if r.algo == "dreamerv2" and r.target in targets else []
+        if curve:
+            uncapped[r.run_dir] = curve
     fig = _figure(5.5 * len(targets) + 2.5, 4.2)  # + the legend beside the last subplot
     axes = fig.subplots(1, len(targets), squeeze=False)[0]
     for ax, target in zip(axes, targets, strict=True):
         here = [r for r in runs if r.target == target and r.run_dir in curves]
+        values = [v for r in here for c in curves[r.run_dir] for v in c[1:]]
         for i, label in enumerate(label_order(here)):
             mine = [curves[r.run_dir] for r in here if r.label == label]
             for column, style in ((1, "-"), (2, "--")):  # the target critic, then the cap
                 steps, mean, _ = mean_band([[(c[0], c[column]) for c in curve] for curve in mine])
                 name = f"{label}: target critic" if column == 1 else None
                 ax.plot(steps, mean, style, color=f"C{i}", label=name, linewidth=1.2)
-        if all(min(c[1], c[2]) > 0 for r in here for c in curves[r.run_dir]):  # values apart by a factor of zeta
+        offline = [r for r in results if r.target == target and r.run_dir in uncapped]
+        for shade, label in zip(("black", "dimgray", "darkgray"), label_order(offline), strict=False):
+            steps, mean, _ = mean_band([uncapped[r.run_dir] for r in offline if r.label == label])
+            ax.plot(steps, mean, color=shade, label=f"{label}: critic, no cap", linewidth=1.2)
+            values.extend(mean)
+        if min(values) > 0:  # values apart by a factor of zeta
             ax.set_yscale("log")
             ax.yaxis.set_major_formatter("{x:g}")
             ax.yaxis.set_minor_formatter(_two_three_five)

@@ -467,7 +467,8 @@ def drawn(monkeypatch):
 
 def test_the_figures_draw_the_variants_against_the_baselines_and_each_critic_under_its_cap(tmp_path, drawn):
     """Figure 4(a) draws the other algorithms as configured as dashed lines at their mean; cap.png draws each CoWorld
-    label's target critic (solid) and its cap, the capping critic's value over the run's zeta (dashed)."""
+    label's target critic (solid) and its cap, the capping critic's value over the run's zeta (dashed), and offline
+    DreamerV2's uncapped critic (black), each mean over seeds."""
     target = "toy_reach_shifted"
     logs = [{"step": s, "target/coworld/target_value": v, "target/coworld/source_value": 30.0} for s, v in
             ((100, 2.0), (200, 4.0))]  # fmt: skip
@@ -476,7 +477,9 @@ def test_the_figures_draw_the_variants_against_the_baselines_and_each_critic_und
                  records=logs, coworld={"zeta": 1.0})  # fmt: skip
         make_run(tmp_path, f"cw10-{seed}", algo="coworld", source="toy_reach", target=target, seed=seed,
                  returns=[30.0], variant="zeta10", records=logs, coworld={"zeta": 10.0})  # fmt: skip
-        make_run(tmp_path, f"dv{seed}", algo="dreamerv2", target=target, seed=seed, returns=[10.0 + seed])
+        critic = [{"step": s, "unit": "update", "critic/value": v + seed} for s, v in ((100, 5.0), (200, 9.0))]
+        make_run(tmp_path, f"dv{seed}", algo="dreamerv2", target=target, seed=seed, returns=[10.0 + seed],
+                 records=critic)  # fmt: skip
         make_run(tmp_path, f"pen{seed}", algo="dreamerv2-penalty", target=target, seed=seed, returns=[5.0])
     write_report(tmp_path)
     (ablation,) = drawn["ablation.png"].axes
@@ -486,12 +489,14 @@ def test_the_figures_draw_the_variants_against_the_baselines_and_each_critic_und
     (cap,) = drawn["cap.png"].axes
     lines = [(line.get_label(), line.get_linestyle(), list(line.get_ydata())) for line in cap.lines]
     assert [(style, values) for _, style, values in lines] == [
-        ("-", [2.0, 4.0]), ("--", [30.0, 30.0]), ("-", [2.0, 4.0]), ("--", [3.0, 3.0])
+        ("-", [2.0, 4.0]), ("--", [30.0, 30.0]), ("-", [2.0, 4.0]), ("--", [3.0, 3.0]), ("-", [5.5, 9.5])
     ]  # fmt: skip
     assert [label for label, _, _ in lines if not label.startswith("_")] == [
         "coworld: target critic",
         "coworld (zeta10): target critic",
+        "dreamerv2: critic, no cap",
     ]
+    assert cap.lines[-1].get_color() == "black"
     assert cap.get_yscale() == "log"
     assert cap.get_legend().get_window_extent().x0 >= cap.get_window_extent().x1  # beside the lines, not on them
 
