@@ -4,7 +4,7 @@
 
 * ``results.csv`` -- one row per run (:mod:`coworld.report.results`);
 * ``report.md`` -- the Table-1-style table with the aggregate row, ours beside the later CoWorld paper's published
-  numbers (:mod:`coworld.report.paper`), the variants and value-check tables, CoWorld's own diagnostics
+  numbers (:mod:`coworld.report.paper`), the variants, by-seed and value-check tables, CoWorld's own diagnostics
   (:mod:`coworld.report.diagnostics`), the figures, and which runs are not finished (:mod:`coworld.report.tables`);
 * ``curves-<target>.png``, ``value_check.png``, ``ablation.png``, ``cap.png`` (:mod:`coworld.report.plots`).
 
@@ -134,6 +134,16 @@ def _markdown(
             " ablation's `no-*` switch one of CoWorld's terms off, Figure 4(a)).",
             "",
             varied,
+            "",
+        ]
+    by_seed = tables.seed_table(results)
+    if by_seed:
+        lines += [
+            "## By seed",
+            "",
+            "Each finished run's final return by seed, so that each arm can be set against the others within a seed.",
+            "",
+            by_seed,
             "",
         ]
     from coworld.report.choice import choice_lines

@@ -194,6 +194,28 @@ def results_table(results: Sequence[RunResult], *, variants: bool = False) -> st
     return "\n".join(lines)
 
 
+def seed_table(results: Sequence[RunResult]) -> str:
+    """Each finished run's final return by seed, one row per pair and label (variants too), one column per seed: so
+    a study's arms can be set against its baselines within each seed. '' unless some label has two seeds or more."""
+    finished = [r for r in results if r.final_return is not None]
+    by_seed: dict[tuple[str, str], dict[int, float]] = {}
+    for r in finished:
+        by_seed.setdefault((r.target, r.label), {})[r.seed] = float(r.final_return)  # type: ignore[arg-type]
+    if not by_seed or max(len(returns) for returns in by_seed.values()) < 2:
+        return ""
+    seeds = sorted({seed for returns in by_seed.values() for seed in returns})
+    lines = [
+        "| pair | algorithm | " + " | ".join(f"seed {seed}" for seed in seeds) + " |",
+        "|---|---|" + "---:|" * len(seeds),
+    ]
+    for target in _rows(finished):
+        for label in label_order(r for r in finished if r.target == target):
+            returns = by_seed[(target, label)]
+            cells = [_fmt(returns[seed]) if seed in returns else "—" for seed in seeds]
+            lines.append(f"| {_pair_label(results, target)} | {label} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
 def value_table(results: Sequence[RunResult]) -> str:
     """Figure 4(b)'s check as a table: mean critic estimate against the true discounted return, per pair,
     algorithm and variant (finished runs that measured it), with what CoWorld's cap (the critic Eq. 6 caps the

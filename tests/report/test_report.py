@@ -28,7 +28,7 @@ from coworld.report.results import (
     read_run_metrics,
     wall_clock_curve,
 )
-from coworld.report.tables import iqm_interval, label_order, results_table, value_table
+from coworld.report.tables import iqm_interval, label_order, results_table, seed_table, value_table
 
 
 @pytest.fixture
@@ -423,6 +423,31 @@ def test_coworld_diagnostics_summarise_each_term_from_the_logs(tmp_path):
     assert load_result(on).zeta == 2.0
     assert cap_curve(records, 2.0) == [(100, 4.0, 1.5), (200, 2.0, 2.5)]  # the cap: the source critic / zeta
     assert (tmp_path / "cap.png").read_bytes()[:4] == b"\x89PNG" and "(cap.png)" in (tmp_path / "report.md").read_text()
+
+
+def test_the_by_seed_table_sets_each_arm_against_the_others_within_a_seed(tmp_path: Path) -> None:
+    """One row per pair and label (variants too, in label order), one column per seed, each cell that run's final
+    return; a seed a label lacks is a dash, an unfinished run is left out; no table while every label has one seed."""
+    target = "toy_reach_shifted"
+    make_run(tmp_path, "dv0", algo="dreamerv2", target=target, seed=0, returns=[10.0, 12.0])
+    make_run(tmp_path, "cw10-1", algo="coworld", source="toy_reach", target=target, seed=1, returns=[3.0],
+             variant="zeta10")  # fmt: skip
+    assert seed_table(load_results(tmp_path)) == ""  # every label has one seed
+    make_run(tmp_path, "dv1", algo="dreamerv2", target=target, seed=1, returns=[20.0])
+    make_run(tmp_path, "cw10-0", algo="coworld", source="toy_reach", target=target, seed=0, returns=[5.0],
+             variant="zeta10")  # fmt: skip
+    make_run(tmp_path, "cw0", algo="coworld", source="toy_reach", target=target, seed=0, returns=[7.0], variant="")
+    make_run(tmp_path, "cw1", algo="coworld", source="toy_reach", target=target, seed=1, variant="")  # unfinished
+    pair = "| toy_reach → toy_reach_shifted"
+    assert seed_table(load_results(tmp_path)).splitlines() == [
+        "| pair | algorithm | seed 0 | seed 1 |",
+        "|---|---|---:|---:|",
+        f"{pair} | dreamerv2 | 11.0 | 20.0 |",
+        f"{pair} | coworld | 7.0 | — |",
+        f"{pair} | coworld (zeta10) | 5.0 | 3.0 |",
+    ]
+    write_report(tmp_path)
+    assert "## By seed" in (tmp_path / "report.md").read_text()
 
 
 def test_lompo_and_the_ewc_fine_tuned_runs_get_their_own_columns_and_curves(tmp_path: Path) -> None:
