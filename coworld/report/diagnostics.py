@@ -9,7 +9,9 @@
   whole run and at the last log; where it would bind at ``zeta`` 2, 3, 5 and 10 (``target/coworld/binds_zeta_Z``,
   measured without effect), over the whole run; and the two critics' mean values on those states
   (``target/coworld/target_value``, ``target/coworld/source_value``), with the cap itself: the capping critic's
-  value over the run's ``zeta`` (:attr:`RunResult.zeta`), the level the term holds the target critic under.
+  value over the run's ``zeta`` (:attr:`RunResult.zeta`), the level the term holds the target critic under, and the
+  target critic's value as a fraction of that cap (:func:`under_cap`): where the cap acts, the critic settles just
+  under it and the term binds on few states all the same, so the binding share alone does not show whether it acts.
 
 A term that is switched off logs nothing and shows as a dash.
 
@@ -91,8 +93,9 @@ def diagnostics_table(results: Sequence[RunResult]) -> str:
     lines = [
         "| pair | algorithm | seed | alignment KL, first → last | relabelled reward loss, first → last"
         " | max-min binds: run (last) | would bind at zeta 2 / 3 / 5 / 10 | target critic: run (last)"
-        " | the cap's critic: run (last) | the cap, its critic / zeta: run (last) |",
-        "|---|---|---:|---|---|---|---|---|---|---|",
+        " | the cap's critic: run (last) | the cap, its critic / zeta: run (last)"
+        " | target critic / the cap: last 3/4 of the run, min-max (last) |",
+        "|---|---|---:|---|---|---|---|---|---|---|---|",
     ]
     for r in runs:
         records = read_run_metrics(Path(r.run_dir))
@@ -105,6 +108,7 @@ def diagnostics_table(results: Sequence[RunResult]) -> str:
             _value(series(records, TARGET_VALUE)),
             _value(capping),
             _value(None if capping is None or r.zeta is None else capping.scaled(1 / r.zeta)),
+            _fraction(None if r.zeta is None else under_cap(records, r.zeta)),
         ]
         lines.append(f"| {r.source} → {r.target} | {r.label} | {r.seed} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
@@ -166,6 +170,20 @@ def critic_curve(records: Sequence[Mapping[str, Any]]) -> list[tuple[int, float]
         for r in records
         if r.get("unit") in TARGET_UNITS and _finite(r.get("critic/value"))
     ]
+
+
+def under_cap(records: Sequence[Mapping[str, Any]], zeta: float) -> tuple[float, float, float] | None:
+    """The target critic's value as a fraction of the cap (:func:`cap_curve`) at each log of the last three quarters
+    of the run, after the critic's first climb: (lowest, highest, last); None without a log where the cap is above 0."""
+    curve = [(step, critic / cap) for step, critic, cap in cap_curve(records, zeta) if cap > 0]
+    if not curve:
+        return None
+    fractions = [fraction for step, fraction in curve if step >= curve[-1][0] / 4]
+    return min(fractions), max(fractions), fractions[-1]
+
+
+def _fraction(span: tuple[float, float, float] | None) -> str:
+    return "–" if span is None else f"{span[0]:.2f}-{span[1]:.2f} ({span[2]:.2f})"
 
 
 def cap_curve(records: Sequence[Mapping[str, Any]], zeta: float) -> list[tuple[int, float, float]]:

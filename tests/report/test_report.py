@@ -18,7 +18,7 @@ from coworld import envs
 from coworld.cli import main
 from coworld.report import results as results_module
 from coworld.report import write_report
-from coworld.report.diagnostics import cap_curve, diagnostics_table, series
+from coworld.report.diagnostics import cap_curve, diagnostics_table, series, under_cap
 from coworld.report.plots import curve_runs, mean_band
 from coworld.report.results import (
     find_run_dirs,
@@ -414,14 +414,20 @@ def test_coworld_diagnostics_summarise_each_term_from_the_logs(tmp_path):
     assert len(table) == 2 + 2  # header, rule, the two CoWorld runs; not the DreamerV2 run
     pair = "| toy_reach → toy_reach_shifted | coworld"
     probes = "40.0% / 50.0% / 60.0% / 70.0%"  # where the term would bind at zeta 2, 3, 5, 10: the run's mean
-    assert table[2] == f"{pair} | 3 | 2 → 0.5 | 0.8 → 0.2 | 30.0% (10.0%) | {probes} | 3 (2) | 4 (5) | 2 (2.5) |"
-    assert table[3] == f"{pair} | 4 | 1 → 1 | – | – | – / – / – / – | – | – | – |"
+    under = "0.80-2.67 (0.80)"  # the target critic over the cap (4 / 1.5, 2 / 2.5), logs from a quarter of the run on
+    assert (
+        table[2] == f"{pair} | 3 | 2 → 0.5 | 0.8 → 0.2 | 30.0% (10.0%) | {probes} | 3 (2) | 4 (5) | 2 (2.5) | {under} |"
+    )
+    assert table[3] == f"{pair} | 4 | 1 → 1 | – | – | – / – / – / – | – | – | – | – |"
     assert load_result(on).algo == "coworld"
     out = CliRunner().invoke(main, ["report", str(tmp_path)])
     assert out.exit_code == 0, out.output
     assert "## CoWorld's terms" in (tmp_path / "report.md").read_text()
     assert load_result(on).zeta == 2.0
     assert cap_curve(records, 2.0) == [(100, 4.0, 1.5), (200, 2.0, 2.5)]  # the cap: the source critic / zeta
+    later = [*records, {"step": 1000, "target/coworld/target_value": 3.0, "target/coworld/source_value": 8.0}]
+    assert under_cap(later, 2.0) == (0.75, 0.75, 0.75)  # logs before a quarter of the run (250) are left out
+    assert under_cap(records[1:2], 2.0) is None
     assert (tmp_path / "cap.png").read_bytes()[:4] == b"\x89PNG" and "(cap.png)" in (tmp_path / "report.md").read_text()
 
 
