@@ -42,7 +42,7 @@ SUMMARIES = {
     "collect": "Collect an offline dataset in a task.",
     "dataset": "Inspect, check, merge, import and export datasets.",
     "train": "Train CoWorld or a baseline on a dataset.",
-    "eval": "Evaluate a trained run: return and value check.",
+    "eval": "Evaluate a trained run: return, value and reward checks.",
     "config": "Print the resolved config as JSON.",
     "viz": "Pictures of predictions, latents and datasets.",
     "sweep": "Run a paper table or a grid of runs.",

@@ -85,6 +85,8 @@ def test_collect_train_eval(toy_dataset, tmp_path):
         "eval/return",
         "eval/value_estimate",
         "eval/value_true",
+        "eval/reward_estimate",
+        "eval/reward_true",
     ):
         assert key in keys, key
     assert list((run / "tb").glob("events.out.tfevents.*"))
@@ -95,6 +97,7 @@ def test_collect_train_eval(toy_dataset, tmp_path):
     result = json.loads((run / "eval.json").read_text())
     assert len(result["returns"]) == 3 and result["task"] == "toy_reach_shifted"
     assert len(result["value_estimate"]) == 3 and len(result["value_true"]) == 3
+    assert len(result["reward_estimate"]) == 3 and len(result["reward_true"]) == 3
     assert result["mean"] == pytest.approx(sum(result["returns"]) / 3)
 
 

@@ -225,6 +225,9 @@ class CoWorld:
     def value(self, state: Any) -> np.ndarray:
         return self.target.value(state)
 
+    def predicted_reward(self, state: Any) -> np.ndarray:
+        return self.target.predicted_reward(state)
+
     def source_value(self, state: Any) -> np.ndarray:
         """:attr:`cap_critic`'s estimate ``(N,)`` for the target agent's latent states (``state`` from
         :meth:`policy`): what Eq. 6's cap says the target agent's states are worth (the value check's third line)."""

@@ -58,6 +58,9 @@ class SourceLearner:
     def value(self, state: Any) -> np.ndarray:
         return self.coworld.source.value(state)
 
+    def predicted_reward(self, state: Any) -> np.ndarray:
+        return self.coworld.source.predicted_reward(state)
+
     def train(self, batch: Mapping[str, np.ndarray]) -> dict[str, float]:
         # the online trainer adds its own "source/" prefix (to these and to its eval/ and perf/ metrics)
         return {key.removeprefix("source/"): value for key, value in self.coworld.train_source(batch).items()}

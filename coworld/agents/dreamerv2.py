@@ -192,6 +192,16 @@ class DreamerV2:
             value = self.actor_critic.critic_value(self.world_model.features(latent))
         return value.float().cpu().numpy()
 
+    @torch.no_grad()
+    def predicted_reward(self, state: PolicyState) -> np.ndarray:
+        """The reward head's prediction ``(N,)`` for the latent states the policy has just reached (``state`` from
+        :meth:`policy`): the reward of arriving there, set beside the rewards received (the reward check), which
+        tells whether the world model scores the agent's own states as the environment does."""
+        latent, _ = state
+        with self._autocast():
+            reward = self.world_model.reward_head(self.world_model.features(latent)).mean
+        return reward.float().cpu().numpy()
+
     # ---------------------------------------------------------------------------------------------- training
 
     def to_batch(self, batch: Mapping[str, np.ndarray | Tensor]) -> dict[str, Tensor]:

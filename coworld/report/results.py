@@ -66,6 +66,10 @@ class RunResult:
     """CoWorld: the mean estimate, over the same steps, of the critic that caps the target critic (Eq. 6)."""
     source_steps: int | None = None
     """The last source env step logged (:func:`source_steps`): how far a run that pretrains its source has come."""
+    reward_estimate: float | None = None
+    """World-model agents: the reward head's mean prediction for the states the evaluation reached (reward check)."""
+    reward_true: float | None = None
+    """The mean reward of arriving at the same states, received."""
     zeta: float | None = None
     """CoWorld: Eq. 6's scale on the target critic (``coworld.zeta`` in config.json); None for other algorithms."""
 
@@ -100,6 +104,8 @@ CSV_COLUMNS = (
     "value_estimate",
     "value_true",
     "value_source",
+    "reward_estimate",
+    "reward_true",
     "normalized_score",
     "updates",
     "wall_time_s",
@@ -378,7 +384,7 @@ def load_result(run_dir: Path, qualities: dict[str, str | None] | None = None) -
     variant, pair_source = _variant(run_dir, algo, config, problems)
     source = info.get("source") if isinstance(info.get("source"), str) else None
     source = source or pair_source
-    final = std = success = estimate = true = capping = None
+    final = std = success = estimate = true = capping = predicted = arrived = None
     episodes = None
     result = _json_object(run_dir / "eval.json", problems)
     foreign = _foreign_evaluation(result, info)
@@ -396,9 +402,11 @@ def load_result(run_dir: Path, qualities: dict[str, str | None] | None = None) -
             estimate = _mean([float(v) for v in result.get("value_estimate") or []])
             true = _mean([float(v) for v in result.get("value_true") or []])
             capping = _mean([float(v) for v in result.get("value_source") or []])
+            predicted = _mean([float(v) for v in result.get("reward_estimate") or []])
+            arrived = _mean([float(v) for v in result.get("reward_true") or []])
         except (ValueError, KeyError, TypeError) as err:
             problems.append(f"{run_dir / 'eval.json'}: not an evaluation record ({type(err).__name__}: {err})")
-            final = std = success = estimate = true = capping = episodes = None
+            final = std = success = estimate = true = capping = predicted = arrived = episodes = None
     records = _metrics(run_dir, problems)
     return RunResult(
         run_dir=str(run_dir),
@@ -414,6 +422,8 @@ def load_result(run_dir: Path, qualities: dict[str, str | None] | None = None) -
         value_estimate=estimate,
         value_true=true,
         value_source=capping,
+        reward_estimate=predicted,
+        reward_true=arrived,
         zeta=_zeta(config) if algo == "coworld" else None,
         normalized_score=normalized(target, final),
         updates=_updates(records, algo),

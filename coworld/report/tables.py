@@ -219,13 +219,15 @@ def seed_table(results: Sequence[RunResult]) -> str:
 def value_table(results: Sequence[RunResult]) -> str:
     """Figure 4(b)'s check as a table: mean critic estimate against the true discounted return, per pair,
     algorithm and variant (finished runs that measured it), with what CoWorld's cap (the critic Eq. 6 caps the
-    target critic with) says of the same states where it was measured."""
+    target critic with) says of the same states where it was measured, and the reward check: the world model's
+    predicted reward a step for the same states against the reward received on arriving there."""
     measured = [r for r in results if r.value_estimate is not None and r.value_true is not None]
     if not measured:
         return ""
     lines = [
-        "| pair | algorithm | value estimate | true discounted return | the cap's critic | runs |",
-        "|---|---|---:|---:|---:|---:|",
+        "| pair | algorithm | value estimate | true discounted return | the cap's critic"
+        " | reward a step: predicted / received | runs |",
+        "|---|---|---:|---:|---:|---:|---:|",
     ]
     for target in _rows(measured):
         here = [r for r in measured if r.target == target]
@@ -235,8 +237,15 @@ def value_table(results: Sequence[RunResult]) -> str:
             true = float(np.mean([r.value_true for r in runs]))
             capping = [r.value_source for r in runs if r.value_source is not None]
             cap = f"{np.mean(capping):.2f}" if capping else "–"
+            checked = [r for r in runs if r.reward_estimate is not None and r.reward_true is not None]
+            reward = (
+                f"{np.mean([r.reward_estimate for r in checked]):.3f} / {np.mean([r.reward_true for r in checked]):.3f}"
+                if checked
+                else "–"
+            )
             lines.append(
-                f"| {_pair_label(results, target)} | {label} | {estimate:.2f} | {true:.2f} | {cap} | {len(runs)} |"
+                f"| {_pair_label(results, target)} | {label} | {estimate:.2f} | {true:.2f} | {cap} | {reward}"
+                f" | {len(runs)} |"
             )
     return "\n".join(lines)
 

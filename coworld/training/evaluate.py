@@ -8,6 +8,8 @@ worker count. The result holds the return of every episode, its normalized score
 reference returns, the success rate on tasks that report success, and Figure 4(b)'s value check: the critic's
 estimate against the true discounted return of the same episode from the same step (:func:`true_values`), and for
 CoWorld also what the critic that caps the target critic (Eq. 6) says of the same states (``source_value(state)``).
+World-model agents (``predicted_reward(state)``) add the reward check: the reward head's prediction for the states
+the agent reached against the reward of arriving at each, received.
 """
 
 from __future__ import annotations
@@ -48,6 +50,10 @@ class EvalResult:
     value_source: list[float] | None = None
     """CoWorld: per episode, the mean over the same steps of the estimate of the critic that caps the target critic
     in Eq. 6 (the source critic, or the target-policy critic)."""
+    reward_estimate: list[float] | None = None
+    """World-model agents: per episode, the reward head's mean prediction for the states the agent reached."""
+    reward_true: list[float] | None = None
+    """Per episode: the mean over the same states of the reward of arriving at each (0 at the reset), received."""
     discount: float | None = None
     extra: dict[str, Any] = field(default_factory=dict)
 
@@ -87,6 +93,11 @@ class EvalResult:
             )
         if self.value_source is not None:
             text += f" (the cap's critic: {np.mean(self.value_source):.2f})"
+        if self.reward_estimate is not None and self.reward_true is not None:
+            text += (
+                f"; reward a step predicted {np.mean(self.reward_estimate):.3f} vs received"
+                f" {np.mean(self.reward_true):.3f}"
+            )
         return text
 
     def metrics(self, prefix: str = "") -> dict[str, float]:
@@ -101,6 +112,9 @@ class EvalResult:
             out[f"{prefix}eval/value_true"] = float(np.mean(self.value_true))
         if self.value_source is not None:
             out[f"{prefix}eval/value_source"] = float(np.mean(self.value_source))
+        if self.reward_estimate is not None and self.reward_true is not None:
+            out[f"{prefix}eval/reward_estimate"] = float(np.mean(self.reward_estimate))
+            out[f"{prefix}eval/reward_true"] = float(np.mean(self.reward_true))
         return out
 
     def to_dict(self) -> dict[str, Any]:
@@ -167,7 +181,8 @@ def evaluate(
     global random state is left as it was.
 
     Args:
-        discount: when given and the agent has ``value``, also measure the value check with this discount.
+        discount: when given and the agent has ``value``, also measure the value check with this discount (and,
+            where it has ``predicted_reward``, the reward check).
         video_episodes: how many of the first episodes to keep frames of.
 
     Returns:
@@ -177,6 +192,7 @@ def evaluate(
     spec = envs.task_spec(task)
     want_values = discount is not None and hasattr(agent, "value")
     want_source = want_values and hasattr(agent, "source_value")
+    want_rewards = want_values and hasattr(agent, "predicted_reward")
     cuda = torch.cuda.is_available() and getattr(getattr(agent, "device", None), "type", "cpu") == "cuda"
     returns: list[float] = []
     lengths: list[int] = []
@@ -184,6 +200,8 @@ def evaluate(
     estimates: list[float] = []
     trues: list[float] = []
     sources: list[float] = []
+    predicted: list[float] = []
+    arrived: list[float] = []
     videos: list[np.ndarray] = []
     venv = envs.make_vector(task, workers, seed=seed)
     bar = progress_bar(total=episodes, desc=f"eval {task}", unit="episodes", enabled=progress, leave=False)
@@ -202,6 +220,7 @@ def evaluate(
                 ep_rewards: list[list[float]] = [[] for _ in range(n)]
                 ep_values: list[list[float]] = [[] for _ in range(n)]
                 ep_source: list[list[float]] = [[] for _ in range(n)]
+                ep_predicted: list[list[float]] = [[] for _ in range(n)]
                 ep_success = np.zeros(n, dtype=bool)
                 frames = [[obs[i]] for i in range(n)]
                 actions = np.zeros((workers, *venv.single_action_space.shape), np.float32)
@@ -215,6 +234,8 @@ def evaluate(
                                 ep_values[i].append(float(np.asarray(agent.value(states[i]))[0]))  # type: ignore[attr-defined]
                             if want_source:
                                 ep_source[i].append(float(np.asarray(agent.source_value(states[i]))[0]))  # type: ignore[attr-defined]
+                            if want_rewards:
+                                ep_predicted[i].append(float(np.asarray(agent.predicted_reward(states[i]))[0]))  # type: ignore[attr-defined]
                         actions[i] = action[0]
                     obs, reward, terminated, truncated, info = venv.step(actions)
                     for i in np.flatnonzero(alive):
@@ -236,6 +257,9 @@ def evaluate(
                         trues.append(float(np.mean(true_values(rewards, discount))))  # type: ignore[arg-type]
                     if want_source:
                         sources.append(float(np.mean(ep_source[i])))
+                    if want_rewards:  # the state reached at step t was arrived at with reward t - 1 (none at reset)
+                        predicted.append(float(np.mean(ep_predicted[i])))
+                        arrived.append(float(np.mean(np.concatenate([[0.0], rewards[:-1]]))))
                     if done_episodes + i < video_episodes:
                         videos.append(np.stack(frames[i]))
                 done_episodes += n
@@ -251,6 +275,8 @@ def evaluate(
         value_estimate=estimates if want_values else None,
         value_true=trues if want_values else None,
         value_source=sources if want_source else None,
+        reward_estimate=predicted if want_rewards else None,
+        reward_true=arrived if want_rewards else None,
         discount=discount if want_values else None,
     )
     return result, videos

@@ -55,6 +55,7 @@ def make_run(
     coworld: dict | None = None,
     variant: str | None = None,
     value: tuple[float, float] | None = None,
+    reward: tuple[float, float] | None = None,
 ) -> Path:
     """A run folder as `coworld train` (+ `coworld eval`, + a sweep's record) leaves it."""
     run = root / name
@@ -65,6 +66,8 @@ def make_run(
         result = {"task": target, "returns": returns, "std": float(np.std(returns)), "success_rate": None}
         if value is not None:
             result.update(value_estimate=[value[0]] * len(returns), value_true=[value[1]] * len(returns))
+        if reward is not None:  # the reward check: predicted, received, a step
+            result.update(reward_estimate=[reward[0]] * len(returns), reward_true=[reward[1]] * len(returns))
         (run / "eval.json").write_text(json.dumps(result))
     if records is not None:
         (run / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in records))
@@ -191,7 +194,7 @@ def test_report_files_and_unfinished_runs(tmp_path, score_scale, drawn):
     assert "| toy_reach → toy_reach_shifted | 11.3 ± 1.9 | **35.0 ± 8.2** |" in text
     assert "## Not finished" in text and "cw-b2" in text and "7 updates logged" in text
     # value check: dreamerv2 9.00 vs 1.00 on the shifted task (the runs with eval.json's value check)
-    assert "| toy_reach → toy_reach_shifted | dreamerv2 | 9.00 | 1.00 | – | 3 |" in text
+    assert "| toy_reach → toy_reach_shifted | dreamerv2 | 9.00 | 1.00 | – | – | 3 |" in text
     for name in ("value_check.png",):
         assert (tmp_path / name).read_bytes()[:4] == b"\x89PNG"
     (check,) = drawn["value_check.png"].axes
@@ -250,7 +253,7 @@ def test_ablation_from_plain_runs_and_from_sweep_records(tmp_path, score_scale):
     target = "toy_reach_shifted"
     for seed, r in enumerate([30.0, 34.0]):
         make_run(tmp_path, f"full{seed}", algo="coworld", source="toy_reach", target=target, seed=seed, returns=[r],
-                 value=(5.0 + seed, 4.0))  # fmt: skip
+                 value=(5.0 + seed, 4.0), reward=(0.5 + seed, 0.25))  # fmt: skip
         make_run(tmp_path, f"noalign{seed}", algo="coworld", source="toy_reach", target=target, seed=seed,
                  returns=[r - 20], coworld={"align": False, "value_reg": True}, value=(9.0, 4.0))  # fmt: skip
         make_run(tmp_path, f"lr{seed}", algo="coworld", source="toy_reach", target=target, seed=seed,
@@ -263,8 +266,8 @@ def test_ablation_from_plain_runs_and_from_sweep_records(tmp_path, score_scale):
     assert results_table(results).count("\n") == 3  # the main table: CoWorld as configured only
     values = value_table(results).splitlines()  # the value check tells the variants apart
     assert values[2:] == [
-        "| toy_reach → toy_reach_shifted | coworld | 5.50 | 4.00 | – | 2 |",
-        "| toy_reach → toy_reach_shifted | coworld (no-align) | 9.00 | 4.00 | – | 2 |",
+        "| toy_reach → toy_reach_shifted | coworld | 5.50 | 4.00 | – | 1.000 / 0.250 | 2 |",  # the seeds' mean
+        "| toy_reach → toy_reach_shifted | coworld (no-align) | 9.00 | 4.00 | – | – | 2 |",
     ]
     write_report(tmp_path)
     assert (tmp_path / "ablation.png").read_bytes()[:4] == b"\x89PNG"
