@@ -26,9 +26,9 @@ from coworld.commands.options import SEED, count_type, distinct_outputs, input_p
 def evaluate(ckpt, episodes, workers, seed, video, video_episodes, out, task, device) -> None:
     """Evaluate a trained run: return, value and reward checks.
 
-    Mean ± std return (and success rate on Meta-World) of a trained policy, plus the value and reward checks. The results are
-    printed before they are written: a location that cannot be written loses nothing. Docs: docs/usage.md,
-    "Evaluation".
+    Mean ± std return (and success rate on Meta-World) of a trained policy, plus the value and reward checks. The
+    results are printed before they are written: a location that cannot be written loses nothing. Docs:
+    docs/usage.md, "Evaluation".
     """
     from coworld.envs.vector import sensible_workers
     from coworld.errors import CoworldError
