@@ -19,16 +19,20 @@ def discounted_returns(rewards: np.ndarray, discount: float) -> np.ndarray:
     return out
 
 
+def arrival_rewards(rewards: np.ndarray) -> np.ndarray:
+    """The reward of arriving at each observation of one episode: ``rewards (T,)``, ``rewards[t]`` earned by the
+    action taken at ``o_t``, -> ``(T+1,)`` ``[0, rewards[0], ..., rewards[T-1]]`` for ``o_0 .. o_T`` (the replay
+    convention: step ``t`` holds the reward of the action that led to it, zero at the first step)."""
+    return np.concatenate([[0.0], np.asarray(rewards, np.float64)])
+
+
 def true_values(rewards: np.ndarray, discount: float) -> np.ndarray:
     """What the critic's ``v(z_t)`` estimates, measured: the discounted return from step ``t`` of an episode.
 
     ``rewards (T,)``: ``rewards[t]`` is earned by the action taken at observation ``o_t``. A DreamerV2 critic
     at the state ``z_t`` that filtered ``o_t`` regresses lambda-returns ``R_t = r_t + gamma * ...`` whose first
-    reward is the one received on *arriving* at ``o_t`` (the replay convention: step ``t`` holds the reward
-    of the action that led to it, zero at the first step). So the true value of step ``t`` is
-    ``sum_k gamma^k r'_{t+k}`` over the arrival rewards ``r' = [0, rewards[0], ..., rewards[T-1]]``; returns
-    ``(T,)`` for the steps ``0 .. T-1`` where the policy acted. The sum stops at the episode's end, a time limit
-    included, where the critic would go on.
+    reward is the one received on *arriving* at ``o_t``. So the true value of step ``t`` is ``sum_k gamma^k r'_{t+k}``
+    over the arrival rewards ``r'`` (:func:`arrival_rewards`); returns ``(T,)`` for the steps ``0 .. T-1`` where the
+    policy acted. The sum stops at the episode's end, a time limit included, where the critic would go on.
     """
-    arrival = np.concatenate([[0.0], np.asarray(rewards, np.float64)])
-    return discounted_returns(arrival, discount)[:-1]
+    return discounted_returns(arrival_rewards(rewards), discount)[:-1]

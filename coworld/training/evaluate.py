@@ -25,7 +25,7 @@ import numpy as np
 import torch
 
 from coworld import envs, interrupt
-from coworld.data.values import true_values
+from coworld.data.values import arrival_rewards, true_values
 from coworld.progress import progress_bar
 
 
@@ -257,9 +257,9 @@ def evaluate(
                         trues.append(float(np.mean(true_values(rewards, discount))))  # type: ignore[arg-type]
                     if want_source:
                         sources.append(float(np.mean(ep_source[i])))
-                    if want_rewards:  # the state reached at step t was arrived at with reward t - 1 (none at reset)
+                    if want_rewards:  # the states the policy acted at, o_0 .. o_T-1
                         predicted.append(float(np.mean(ep_predicted[i])))
-                        arrived.append(float(np.mean(np.concatenate([[0.0], rewards[:-1]]))))
+                        arrived.append(float(np.mean(arrival_rewards(rewards)[:-1])))
                     if done_episodes + i < video_episodes:
                         videos.append(np.stack(frames[i]))
                 done_episodes += n
