@@ -464,12 +464,15 @@ CAP_STUDY_VARIANTS: tuple[tuple[Any, ...], ...] = (
     ("later-dmc", settings_overrides("later-dmc")),
     ("target-policy", ("coworld.cap_critic=target_policy",)),
     ("no-align", ("coworld.align=false",)),
+    ("no-align-no-cap", ("coworld.align=false", "coworld.value_reg=false")),
     ("4x", ("coworld.target_updates=5000",), ("coworld", "dreamerv2")),
 )
 """The arms of :func:`cap_study_table`: CoWorld as Table 3 gives it (zeta 1), with zeta 3 and 10, with the later
 paper's DMC settings, with the target-policy critic as its cap, without Eq. 3's alignment (where the cap does not
 bind, the alignment is the only way the source agent reaches the target agent's training: this arm tells what of a
-difference from offline DreamerV2 is the alignment's); CoWorld and offline DreamerV2 with 4x the target updates
+difference from offline DreamerV2 is the alignment's), without the alignment and the cap (the control: its target
+agent's updates are offline DreamerV2's, so what separates it from offline DreamerV2 is CoWorld's loop alone, and
+what separates the other arms from it is their terms); CoWorld and offline DreamerV2 with 4x the target updates
 (5,000 per iteration, 40,000 in all)."""
 
 

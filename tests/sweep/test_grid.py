@@ -308,7 +308,8 @@ def test_coworld_runs_that_pretrain_alike_share_their_pretraining_and_wait_for_i
     zeta3 = jobs[name("zeta3-", 1)]
     train = zeta3.steps[0]
     shared = [train[i + 1] for i, arg in enumerate(train) if arg == "--pretrained-from"]
-    siblings = [name(variant, 1) for variant in ("", "zeta10-", "later-dmc-", "no-align-", "4x-")]  # seed 1's others
+    others = ("", "zeta10-", "later-dmc-", "no-align-", "no-align-no-cap-", "4x-")
+    siblings = [name(variant, 1) for variant in others]  # seed 1's others
     assert shared == [str(dirs.runs / sibling) for sibling in siblings] and "--keep-pretrained" in train
     assert zeta3.shares == tuple(siblings)
     policy_critic = jobs[name("target-policy-", 1)]  # its critic learns while pretraining: none shares it
@@ -403,15 +404,15 @@ def test_an_unknown_table_is_one_line_naming_the_tables(tmp_path):
 
 def test_the_cap_study_runs_each_arm_on_dmc_cpus_cheetah_pair() -> None:
     """Issue 61's study: ``dmc-cpu``'s cheetah pair, its schedule and dataset, with CoWorld at zeta 1, 3, 10, with the
-    later paper's DMC settings, with the target-policy cap and without alignment, CoWorld and offline DreamerV2 at 4x
-    the target updates, and V-D4RL's penalised DreamerV2; 3 seeds each."""
+    later paper's DMC settings, with the target-policy cap, without alignment and without alignment and cap, CoWorld
+    and offline DreamerV2 at 4x the target updates, and V-D4RL's penalised DreamerV2; 3 seeds each."""
     spec = named_table("cap-study").check()
     dmc = named_table("dmc-cpu")
     assert spec.pairs == (("cheetah_run", "cheetah_uphill"),)
     assert (spec.preset, spec.data, spec.eval_episodes, spec.seeds) == ("cpu", dmc.data, 10, (0, 1, 2))
     assert set(dmc.overrides) <= set(spec.overrides)
     arms = {(run.algo, run.variant) for run in spec.runs()}
-    coworld = {"", "zeta3", "zeta10", "later-dmc", "target-policy", "no-align", "4x"}
+    coworld = {"", "zeta3", "zeta10", "later-dmc", "target-policy", "no-align", "no-align-no-cap", "4x"}
     assert arms == {("coworld", v) for v in coworld} | {
         ("dreamerv2", ""),
         ("dreamerv2", "4x"),
@@ -427,6 +428,8 @@ def test_the_cap_study_runs_each_arm_on_dmc_cpus_cheetah_pair() -> None:
     assert config("coworld", "later-dmc").coworld == make_config("cpu+later-dmc", dmc.overrides).coworld
     assert config("coworld", "target-policy").coworld.cap_critic == "target_policy"
     assert config("coworld", "no-align").coworld == dataclasses.replace(config("coworld", "").coworld, align=False)
+    control = dataclasses.replace(config("coworld", "").coworld, align=False, value_reg=False)
+    assert config("coworld", "no-align-no-cap").coworld == control
     for algo in ("coworld", "dreamerv2"):  # 4x the target updates, the rest as dmc-cpu
         assert config(algo, "4x").coworld.target_updates == 4 * config(algo, "").coworld.target_updates
     assert config("dreamerv2-penalty", "").penalty.model_updates == 2_500  # a quarter of its 10,000 updates
