@@ -166,6 +166,11 @@ def ablation_bars(results: Sequence[RunResult], path: Path) -> bool:
     return True
 
 
+def _greys(count: int) -> list[str]:
+    """``count`` greys from black, lighter each, none too light to see."""
+    return [str(round(0.7 * i / max(1, count - 1), 3)) if i else "black" for i in range(count)]
+
+
 def _two_three_five(value: float, _position: int) -> str:
     """A log axis's minor tick label at 2, 3 and 5 times a power of ten only, so labels stay apart."""
     return f"{value:g}" if round(value / 10 ** np.floor(np.log10(value))) in (2, 3, 5) else ""
@@ -173,8 +178,9 @@ def _two_three_five(value: float, _position: int) -> str:
 
 def cap_curves(results: Sequence[RunResult], path: Path) -> bool:
     """Per target (subplot), each CoWorld label's target critic (solid) and the cap on it, the capping critic's value
-    over the run's zeta (dashed), and offline DreamerV2's critic, uncapped (black and greys, one per label), each
-    mean over seeds at each log; False (nothing written) when no CoWorld run logged its critics."""
+    over the run's zeta (dashed), and the uncapped critics, offline DreamerV2's and those of CoWorld runs without the
+    cap (black and greys, one per label), each mean over seeds at each log; False (nothing written) when no CoWorld
+    run logged its critics."""
     runs = [r for r in results if r.algo == "coworld"]
     curves = {}
     for r in runs:
@@ -186,7 +192,10 @@ def cap_curves(results: Sequence[RunResult], path: Path) -> bool:
         return False
     uncapped = {}
     for r in results:
-        curve = critic_curve(read_run_metrics(Path(r.run_dir))) if r.algo == "dreamerv2" and r.target in targets else []
+        if r.target not in targets or r.run_dir in curves or r.algo not in ("dreamerv2", "coworld"):
+            continue
+        key = "target/critic/value" if r.algo == "coworld" else "critic/value"
+        curve = critic_curve(read_run_metrics(Path(r.run_dir)), key)
         if curve:
             uncapped[r.run_dir] = curve
     fig = _figure(5.5 * len(targets) + 2.5, 4.2)  # + the legend beside the last subplot
@@ -201,7 +210,8 @@ def cap_curves(results: Sequence[RunResult], path: Path) -> bool:
                 name = f"{label}: target critic" if column == 1 else None
                 ax.plot(steps, mean, style, color=f"C{i}", label=name, linewidth=1.2)
         offline = [r for r in results if r.target == target and r.run_dir in uncapped]
-        for shade, label in zip(("black", "dimgray", "darkgray"), label_order(offline), strict=False):
+        labels = label_order(offline)
+        for shade, label in zip(_greys(len(labels)), labels, strict=True):
             steps, mean, _ = mean_band([uncapped[r.run_dir] for r in offline if r.label == label])
             ax.plot(steps, mean, color=shade, label=f"{label}: critic, no cap", linewidth=1.2)
             values.extend(mean)

@@ -501,8 +501,8 @@ def drawn(monkeypatch):
 
 def test_the_figures_draw_the_variants_against_the_baselines_and_each_critic_under_its_cap(tmp_path, drawn):
     """Figure 4(a) draws the other algorithms as configured as dashed lines at their mean; cap.png draws each CoWorld
-    label's target critic (solid) and its cap, the capping critic's value over the run's zeta (dashed), and offline
-    DreamerV2's uncapped critic (black), each mean over seeds."""
+    label's target critic (solid) and its cap, the capping critic's value over the run's zeta (dashed), and the
+    uncapped critics, offline DreamerV2's (black) and a CoWorld run's without the cap (grey), each mean over seeds."""
     target = "toy_reach_shifted"
     logs = [{"step": s, "target/coworld/target_value": v, "target/coworld/source_value": 30.0} for s, v in
             ((100, 2.0), (200, 4.0))]  # fmt: skip
@@ -515,22 +515,27 @@ def test_the_figures_draw_the_variants_against_the_baselines_and_each_critic_und
         make_run(tmp_path, f"dv{seed}", algo="dreamerv2", target=target, seed=seed, returns=[10.0 + seed],
                  records=critic)  # fmt: skip
         make_run(tmp_path, f"pen{seed}", algo="dreamerv2-penalty", target=target, seed=seed, returns=[5.0])
+    free = [{"step": s, "unit": "target_update", "target/critic/value": v} for s, v in ((100, 6.0), (200, 12.0))]
+    make_run(tmp_path, "nocap", algo="coworld", source="toy_reach", target=target, seed=0, returns=[40.0],
+             variant="no-cap", records=free, coworld={"zeta": 1.0})  # fmt: skip
     write_report(tmp_path)
     (ablation,) = drawn["ablation.png"].axes
     dashed = {line.get_label(): line.get_ydata()[0] for line in ablation.lines if line.get_linestyle() == "--"}
     assert dashed == {"dreamerv2": 10.5, "dreamerv2-penalty": 5.0}
-    assert [round(bar.get_height(), 6) for bar in ablation.patches] == [20.0, 30.0]
+    assert [round(bar.get_height(), 6) for bar in ablation.patches] == [20.0, 40.0, 30.0]
     (cap,) = drawn["cap.png"].axes
     lines = [(line.get_label(), line.get_linestyle(), list(line.get_ydata())) for line in cap.lines]
     assert [(style, values) for _, style, values in lines] == [
-        ("-", [2.0, 4.0]), ("--", [30.0, 30.0]), ("-", [2.0, 4.0]), ("--", [3.0, 3.0]), ("-", [5.5, 9.5])
+        ("-", [2.0, 4.0]), ("--", [30.0, 30.0]), ("-", [2.0, 4.0]), ("--", [3.0, 3.0]), ("-", [5.5, 9.5]),
+        ("-", [6.0, 12.0]),
     ]  # fmt: skip
     assert [label for label, _, _ in lines if not label.startswith("_")] == [
         "coworld: target critic",
         "coworld (zeta10): target critic",
         "dreamerv2: critic, no cap",
+        "coworld (no-cap): critic, no cap",
     ]
-    assert cap.lines[-1].get_color() == "black"
+    assert cap.lines[-2].get_color() == "black" and cap.lines[-1].get_color() not in ("black", "white")
     assert cap.get_yscale() == "log"
     assert cap.get_legend().get_window_extent().x0 >= cap.get_window_extent().x1  # beside the lines, not on them
 
