@@ -192,7 +192,7 @@ def cap_curves(results: Sequence[RunResult], path: Path) -> bool:
         return False
     uncapped = {}
     for r in results:
-        if r.target not in targets or r.run_dir in curves or r.algo not in ("dreamerv2", "coworld"):
+        if r.target not in targets or not (r.algo == "dreamerv2" or (r.algo == "coworld" and r.zeta is None)):
             continue
         key = "target/critic/value" if r.algo == "coworld" else "critic/value"
         curve = critic_curve(read_run_metrics(Path(r.run_dir)), key)

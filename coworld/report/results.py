@@ -71,7 +71,8 @@ class RunResult:
     reward_true: float | None = None
     """The mean reward of arriving at the same states, received."""
     zeta: float | None = None
-    """CoWorld: Eq. 6's scale on the target critic (``coworld.zeta`` in config.json); None for other algorithms."""
+    """CoWorld: Eq. 6's scale on the target critic (``coworld.zeta`` in config.json); None for other algorithms and
+    for CoWorld without the cap (``coworld.value_reg`` false)."""
 
     @property
     def paper(self) -> Published | None:
@@ -350,9 +351,11 @@ def _config(run_dir: Path) -> tuple[dict[str, Any], int]:
 
 
 def _zeta(config: Mapping[str, Any]) -> float | None:
-    """``coworld.zeta`` of a config, where it is a positive number."""
+    """``coworld.zeta`` of a config, where it is a positive number and Eq. 6's cap is on."""
     switches = config.get("coworld")
-    value = switches.get("zeta") if isinstance(switches, dict) else None
+    if not isinstance(switches, dict) or switches.get("value_reg") is False:
+        return None
+    value = switches.get("zeta")
     return float(value) if _is_step(value) and value > 0 else None  # a finite number
 
 

@@ -517,7 +517,7 @@ def test_the_figures_draw_the_variants_against_the_baselines_and_each_critic_und
         make_run(tmp_path, f"pen{seed}", algo="dreamerv2-penalty", target=target, seed=seed, returns=[5.0])
     free = [{"step": s, "unit": "target_update", "target/critic/value": v} for s, v in ((100, 6.0), (200, 12.0))]
     make_run(tmp_path, "nocap", algo="coworld", source="toy_reach", target=target, seed=0, returns=[40.0],
-             variant="no-cap", records=free, coworld={"zeta": 1.0})  # fmt: skip
+             variant="no-cap", records=free, coworld={"zeta": 1.0, "value_reg": False})  # fmt: skip
     write_report(tmp_path)
     (ablation,) = drawn["ablation.png"].axes
     dashed = {line.get_label(): line.get_ydata()[0] for line in ablation.lines if line.get_linestyle() == "--"}
