@@ -35,10 +35,12 @@ def dataset() -> None:
 )
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as one JSON object.")
 def info(path: Path, discount: float, as_json: bool) -> None:
-    """Episodes, steps, returns, values, normalized score, size on disk and metadata of the dataset at PATH.
+    """Episodes, steps, returns, rewards, values, normalized score, size on disk and metadata of the dataset at PATH.
 
-    The value line is the discounted return from every step to its episode's end: what a critic of the behaviour
-    that collected the data would estimate, to set beside a trained critic's estimates (coworld eval's value check).
+    The reward line is a step's reward: CoWorld's value cap pushes a binding state's value as a TD error of alpha *
+    zeta would, so set alpha * zeta beside it (docs/algorithms.md, "When the cap binds"). The value line is the
+    discounted return from every step to its episode's end: what a critic of the behaviour that collected the data
+    would estimate, to set beside a trained critic's estimates (coworld eval's value check).
     """
     with open_dataset(path) as data:
         summary = data.summary(discount)
@@ -62,6 +64,7 @@ def _info_lines(s: dict[str, Any]) -> list[tuple[str, str]]:
         ("steps", f"{s['steps']:,} rows, {s['frames']:,} frames with each episode's final frame"),
         ("return", _stats_text(ret, ".1f")),
         ("length", _stats_text(length, ".0f")),
+        ("reward", f"{_stats_text(s['reward'], '.3f')}  (a step)"),
         ("value", f"{_stats_text(s['value'], '.2f')}  (discounted return to the episode's end, gamma {s['discount']})"),
         ("normalized", _stats_text(norm, ".1f") if norm else "unknown (no reference returns in the metadata)"),
     ]

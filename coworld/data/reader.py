@@ -201,8 +201,8 @@ class Dataset:
         return raw, stored
 
     def summary(self, discount: float = 0.99) -> dict[str, Any]:
-        """Counts, return, length and value statistics (the discounted return from each step, at ``discount``),
-        normalized score, storage and metadata, as plain values."""
+        """Counts, return, length, reward (a step) and value statistics (the discounted return from each step, at
+        ``discount``), normalized score, storage and metadata, as plain values."""
         raw, stored = self.frame_storage()
         out: dict[str, Any] = {
             "path": str(self.path),
@@ -216,6 +216,7 @@ class Dataset:
             "terminated_episodes": int(self.terminated.sum()),
             "return": _stats(self.returns),
             "length": _stats(self.lengths),
+            "reward": _stats(self._rewards),
             "value": _stats(self.values(discount)),
             "discount": discount,
             "normalized_score": None,

@@ -29,6 +29,11 @@ def test_info_reports_counts_returns_scores_and_size(dataset_path: Path, episode
     assert lines["episodes"].startswith("7 (3 terminated")
     assert lines["steps"].startswith(f"{sum(len(ep['rewards']) for ep in episodes)} rows")
     assert lines["return"].split()[:2] == ["mean", f"{returns.mean():.1f}"]
+    rewards = np.concatenate([ep["rewards"] for ep in episodes]).astype(np.float64)
+    assert lines["reward"].split() == [
+        *("mean", f"{rewards.mean():.3f}", "std", f"{rewards.std():.3f}"),
+        *("min", f"{rewards.min():.3f}", "max", f"{rewards.max():.3f}", "(a", "step)"),
+    ]
     assert lines["normalized"].split()[:2] == ["mean", f"{10 * returns.mean():.1f}"]
     assert "on disk" in lines["size"] and "gzip, ratio" in lines["size"]
     assert json.loads(lines["env_config"])["action_repeat"] == 2
