@@ -37,8 +37,9 @@ def dataset() -> None:
 def info(path: Path, discount: float, as_json: bool) -> None:
     """Episodes, steps, returns, rewards, values, normalized score, size on disk and metadata of the dataset at PATH.
 
-    The reward line is a step's reward: CoWorld's value cap pushes a binding state's value as a TD error of alpha *
-    zeta would, so set alpha * zeta beside it (docs/algorithms.md, "When the cap binds"). The value line is the
+    The reward line is a step's reward: CoWorld's value cap pushes a binding state's value down with slope alpha *
+    zeta (for a Gaussian critic, as a TD error of that size), so set alpha * zeta beside it (docs/algorithms.md, "When
+    the cap binds"). The value line is the
     discounted return from every step to its episode's end: what a critic of the behaviour that collected the data
     would estimate, to set beside a trained critic's estimates (coworld eval's value check).
     """
