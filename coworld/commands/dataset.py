@@ -39,9 +39,9 @@ def info(path: Path, discount: float, as_json: bool) -> None:
 
     The reward line is a step's reward: CoWorld's value cap pushes a binding state's value down with slope alpha *
     zeta (for a Gaussian critic, as a TD error of that size), so set alpha * zeta beside it (docs/algorithms.md, "When
-    the cap binds"). The value line is the
-    discounted return from every step to its episode's end: what a critic of the behaviour that collected the data
-    would estimate, to set beside a trained critic's estimates (coworld eval's value check).
+    the cap binds"). The value line is the discounted return from every step to its episode's end: what a critic of
+    the behaviour that collected the data would estimate, to set beside a trained critic's estimates (coworld eval's
+    value check).
     """
     with open_dataset(path) as data:
         summary = data.summary(discount)
