@@ -38,6 +38,14 @@ def _figure(width: float, height: float) -> Any:
     return require_matplotlib()(figsize=(width, height), layout="constrained")
 
 
+def label_style(i: int) -> tuple[dict[str, str], str]:
+    """The ``i``-th label's line colour and style, and its marker: matplotlib's ten cycle colours, solid with circles,
+    then again dashed with squares and dotted with triangles, so a figure of up to 30 labels draws no two alike (the
+    report's cap study has 11)."""
+    tens = i // 10 % 3
+    return {"color": f"C{i % 10}", "linestyle": ("-", "--", ":")[tens]}, "os^"[tens]
+
+
 def mean_band(curves: Sequence[Sequence[tuple[int, float]]]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(steps, mean, std) over runs at each step that any run evaluated (a run counts where it has a value)."""
     by_step: dict[int, list[float]] = {}
@@ -67,25 +75,29 @@ def learning_curves(results: Sequence[RunResult], target: str, path: Path) -> bo
     runs, x_label = curve_runs(results, target)
     fig = _figure(13.5, 4.0)  # two plots and the legend beside them
     by_updates, by_clock = fig.subplots(1, 2)
-    drawn = False
+    drawn = 0  # labels drawn so far
     for label in label_order(runs):
         labelled = [r for r in runs if r.label == label]
         records = {r.run_dir: read_run_metrics(Path(r.run_dir)) for r in labelled}  # one read serves both axes
         curves = [c for c in (learning_curve(Path(r.run_dir), r.algo, records[r.run_dir]) for r in labelled) if c]
         if not curves:
             continue
+        style, marker = label_style(drawn)
         steps, mean, std = mean_band(curves)
-        line = by_updates.plot(
-            steps, mean, label=f"{label} ({count(len(curves), 'run')})", marker="o" if len(steps) < 12 else None
+        by_updates.plot(
+            steps,
+            mean,
+            label=f"{label} ({count(len(curves), 'run')})",
+            marker=marker if len(steps) < 12 else None,
+            **style,
         )
-        colour = line[0].get_color()
-        by_updates.fill_between(steps, mean - std, mean + std, alpha=0.2, color=colour, linewidth=0)
+        by_updates.fill_between(steps, mean - std, mean + std, alpha=0.2, color=style["color"], linewidth=0)
         for r in labelled:
             clock = wall_clock_curve(Path(r.run_dir), r.algo, records[r.run_dir])
             if clock:
                 hours, values = zip(*clock, strict=True)
-                by_clock.plot(hours, values, color=colour, alpha=0.7, linewidth=1.0)
-        drawn = True
+                by_clock.plot(hours, values, alpha=0.7, linewidth=1.0, **style)
+        drawn += 1
     if not drawn:
         return False
     sources = sorted({r.source for r in runs if r.source})

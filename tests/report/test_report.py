@@ -185,6 +185,28 @@ def test_the_curves_legend_counts_runs_in_the_singular_and_plural(tmp_path, monk
     assert legend.get_window_extent().x0 >= max(ax.get_window_extent().x1 for ax in drawn[0].axes)
 
 
+def test_the_curves_draw_no_two_labels_alike(tmp_path, monkeypatch):
+    """Past matplotlib's ten cycle colours (the cap study has 11 labels), the next labels change line style."""
+    pytest.importorskip("matplotlib")
+    from matplotlib.figure import Figure
+
+    from coworld.report.plots import learning_curves
+
+    records = [{"step": 10, "time": 60.0, "eval/return": 1.0}, {"step": 20, "time": 120.0, "eval/return": 2.0}]
+    for i in range(12):
+        make_run(
+            tmp_path, f"dv{i}", algo="dreamerv2", target="toy_reach_shifted", seed=0, records=records, variant=f"v{i}"
+        )
+    drawn = []
+    monkeypatch.setattr(Figure, "savefig", lambda fig, *a, **k: drawn.append(fig))
+    assert learning_curves(load_results(tmp_path), "toy_reach_shifted", tmp_path / "c.png")
+    by_updates, by_clock = drawn[0].axes
+    styles = [(line.get_color(), line.get_linestyle()) for line in by_updates.lines]
+    assert len(styles) == 12 and len(set(styles)) == 12
+    assert len({(line.get_color(), line.get_marker()) for line in by_updates.lines}) == 12  # with a few evaluations
+    assert [(line.get_color(), line.get_linestyle()) for line in by_clock.lines] == styles
+
+
 def test_report_files_and_unfinished_runs(tmp_path, score_scale, drawn):
     make_grid(tmp_path)
     out = CliRunner().invoke(main, ["report", str(tmp_path)])
