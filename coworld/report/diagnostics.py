@@ -162,10 +162,15 @@ def actor_critic_table(results: Sequence[RunResult]) -> str:
     return target_table(results, ACTOR_CRITIC_TERMS)
 
 
-def critic_curve(records: Sequence[Mapping[str, Any]], key: str = "critic/value") -> list[tuple[int, float]]:
-    """(update, critic value on imagined states) at each log of a run's updates on the target dataset: an uncapped
-    critic's path, beside CoWorld's capped ones (``key``: ``target/critic/value`` for a CoWorld run without the cap)."""
-    return [(int(r["step"]), float(r[key])) for r in records if r.get("unit") in TARGET_UNITS and _finite(r.get(key))]
+def critic_curve(records: Sequence[Mapping[str, Any]]) -> list[tuple[int, float]]:
+    """(update, the target agent's critic value on imagined states) at each log of a run's updates on the target
+    dataset, its key found as :func:`on_target` finds it: an uncapped critic's path, beside CoWorld's capped ones."""
+    logs = [r for r in records if r.get("unit") in TARGET_UNITS]
+    for key in ("target/critic/value", "critic/value"):
+        curve = [(int(r["step"]), float(r[key])) for r in logs if _finite(r.get(key))]
+        if curve:
+            return curve
+    return []
 
 
 def under_cap(records: Sequence[Mapping[str, Any]], zeta: float) -> tuple[float, float, float] | None:

@@ -206,8 +206,7 @@ def cap_curves(results: Sequence[RunResult], path: Path) -> bool:
     for r in results:
         if r.target not in targets or not (r.algo == "dreamerv2" or (r.algo == "coworld" and r.zeta is None)):
             continue
-        key = "target/critic/value" if r.algo == "coworld" else "critic/value"
-        curve = critic_curve(read_run_metrics(Path(r.run_dir)), key)
+        curve = critic_curve(read_run_metrics(Path(r.run_dir)))
         if curve:
             uncapped[r.run_dir] = curve
     fig = _figure(5.5 * len(targets) + 2.5, 4.2)  # + the legend beside the last subplot
