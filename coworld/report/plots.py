@@ -192,7 +192,7 @@ def cap_curves(results: Sequence[RunResult], path: Path) -> bool:
     """Per target (subplot), each CoWorld label's target critic (solid) and the cap on it, the capping critic's value
     over the run's zeta (dashed), and the uncapped critics, offline DreamerV2's and those of CoWorld runs without the
     cap (black and greys, one per label), each mean over seeds at each log; False (nothing written) when no CoWorld
-    run logged its critics."""
+    run logged its critics. Past ten CoWorld labels, colours repeat with markers (squares, then triangles)."""
     runs = [r for r in results if r.algo == "coworld"]
     curves = {}
     for r in runs:
@@ -216,10 +216,12 @@ def cap_curves(results: Sequence[RunResult], path: Path) -> bool:
         values = [v for r in here for c in curves[r.run_dir] for v in c[1:]]
         for i, label in enumerate(label_order(here)):
             mine = [curves[r.run_dir] for r in here if r.label == label]
+            look, marker = label_style(i)
+            marker = marker if i >= 10 else "None"  # solid and dashed say critic and cap: past ten colours, marks
             for column, style in ((1, "-"), (2, "--")):  # the target critic, then the cap
                 steps, mean, _ = mean_band([[(c[0], c[column]) for c in curve] for curve in mine])
                 name = f"{label}: target critic" if column == 1 else None
-                ax.plot(steps, mean, style, color=f"C{i}", label=name, linewidth=1.2)
+                ax.plot(steps, mean, style, color=look["color"], marker=marker, markersize=3, label=name, linewidth=1.2)
         offline = [r for r in results if r.target == target and r.run_dir in uncapped]
         labels = label_order(offline)
         for shade, label in zip(_greys(len(labels)), labels, strict=True):

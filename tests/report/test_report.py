@@ -562,6 +562,19 @@ def test_the_figures_draw_the_variants_against_the_baselines_and_each_critic_und
     assert cap.get_legend().get_window_extent().x0 >= cap.get_window_extent().x1  # beside the lines, not on them
 
 
+def test_the_cap_figure_draws_no_two_critics_alike_past_ten_labels(tmp_path, drawn):
+    """Solid and dashed say target critic or cap in cap.png, so past ten colours the labels differ by marker."""
+    logs = [{"step": s, "target/coworld/target_value": 2.0, "target/coworld/source_value": 30.0} for s in (100, 200)]
+    for i in range(12):
+        make_run(tmp_path, f"cw{i}", algo="coworld", source="toy_reach", target="toy_reach_shifted", seed=0,
+                 returns=[20.0], variant=f"v{i}", records=logs, coworld={"zeta": 1.0})  # fmt: skip
+    write_report(tmp_path)
+    (cap,) = drawn["cap.png"].axes
+    critics = [line for line in cap.lines if line.get_linestyle() == "-"]
+    assert len(critics) == 12 and len({(line.get_color(), line.get_marker()) for line in critics}) == 12
+    assert {line.get_marker() for line in critics[:10]} == {"None"}  # ten labels draw as before, without markers
+
+
 def test_a_log_axis_labels_its_minor_ticks_at_2_3_and_5_only():
     from coworld.report.plots import _two_three_five
 
