@@ -57,7 +57,10 @@ class Series:
 
 def series(records: Sequence[Mapping[str, Any]], key: str) -> Series | None:
     """``key``'s finite values in ``records``, in order, summarised; None when the run never logged it."""
-    values = [float(r[key]) for r in records if _finite(r.get(key))]
+    return _summary([float(r[key]) for r in records if _finite(r.get(key))])
+
+
+def _summary(values: Sequence[float]) -> Series | None:
     if not values:
         return None
     return Series(first=values[0], last=values[-1], mean=sum(values) / len(values), count=len(values))
@@ -126,12 +129,21 @@ TARGET_UNITS = ("update", "target_update")
 """The units of the logs of updates on the target dataset (an offline run's, a CoWorld run's target phases)."""
 
 
+def target_curve(records: Sequence[Mapping[str, Any]], name: str) -> list[tuple[int, float]]:
+    """(update, value) of the target agent's ``name`` (``wm/image``, ``critic/value``, ...) at each log of a run's
+    updates on the target dataset (CoWorld logs its target agent's under ``target/``; a source's pretraining, logged by
+    env step, is left out); [] where not logged."""
+    logs = [r for r in records if r.get("unit") in TARGET_UNITS]
+    for key in (f"target/{name}", name):
+        curve = [(int(r["step"]), float(r[key])) for r in logs if _finite(r.get(key))]
+        if curve:
+            return curve
+    return []
+
+
 def on_target(records: Sequence[Mapping[str, Any]], name: str) -> Series | None:
-    """The target agent's ``name`` (``wm/image``, ``critic/value``, ...) over a run's updates on the target dataset
-    (CoWorld logs its target agent's under ``target/``; a source's pretraining, logged by env step, is left out); None
-    where not logged."""
-    on_target = [r for r in records if r.get("unit") in TARGET_UNITS]
-    return series(on_target, f"target/{name}") or series(on_target, name)
+    """:func:`target_curve`'s values summarised; None where not logged."""
+    return _summary([value for _, value in target_curve(records, name)])
 
 
 def target_table(results: Sequence[RunResult], terms: Sequence[tuple[str, str]]) -> str:
@@ -160,17 +172,6 @@ def world_model_table(results: Sequence[RunResult]) -> str:
 def actor_critic_table(results: Sequence[RunResult]) -> str:
     """Each run's target actor-critic: :data:`ACTOR_CRITIC_TERMS` over its updates on the target dataset."""
     return target_table(results, ACTOR_CRITIC_TERMS)
-
-
-def critic_curve(records: Sequence[Mapping[str, Any]]) -> list[tuple[int, float]]:
-    """(update, the target agent's critic value on imagined states) at each log of a run's updates on the target
-    dataset, its key found as :func:`on_target` finds it: an uncapped critic's path, beside CoWorld's capped ones."""
-    logs = [r for r in records if r.get("unit") in TARGET_UNITS]
-    for key in ("target/critic/value", "critic/value"):
-        curve = [(int(r["step"]), float(r[key])) for r in logs if _finite(r.get(key))]
-        if curve:
-            return curve
-    return []
 
 
 def under_cap(records: Sequence[Mapping[str, Any]], zeta: float) -> tuple[float, float, float] | None:

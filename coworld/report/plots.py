@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from coworld.errors import CoworldError
-from coworld.report.diagnostics import cap_curve, critic_curve
+from coworld.report.diagnostics import cap_curve, target_curve
 from coworld.report.results import ONLINE_ALGO, RunResult, learning_curve, read_run_metrics, wall_clock_curve
 from coworld.report.tables import label_order
 from coworld.text import count
@@ -206,7 +206,7 @@ def cap_curves(results: Sequence[RunResult], path: Path) -> bool:
     for r in results:
         if r.target not in targets or not (r.algo == "dreamerv2" or (r.algo == "coworld" and r.zeta is None)):
             continue
-        curve = critic_curve(read_run_metrics(Path(r.run_dir)))
+        curve = target_curve(read_run_metrics(Path(r.run_dir)), "critic/value")  # an uncapped critic
         if curve:
             uncapped[r.run_dir] = curve
     fig = _figure(5.5 * len(targets) + 2.5, 4.2)  # + the legend beside the last subplot
