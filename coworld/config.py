@@ -343,6 +343,12 @@ class CoWorldConfig:
     """Weight of the value regulariser (Table 3)."""
     zeta: Annotated[float, POSITIVE] = 1.0
     """Rescales target values against source values in Eq. 6."""
+    cap_form: Annotated[str, OneOf(("shift", "on_mean"))] = "shift"
+    """How Eq. 6's max-min term reaches the target critic: 'shift' (a binding state's fixed point ``alpha * zeta``
+    below its lambda-return on every critic: the paper's term on a Gaussian critic, the two-hot critic's target
+    lowered by ``alpha * zeta`` where the term binds) or 'on_mean' (the term on the critic's mean: the same on a
+    Gaussian, on a two-hot critic a hard clamp ``v_T <= v_S / zeta``, kept to compare with; docs/algorithms.md,
+    "Eq. 6 on a two-hot critic")."""
     cap_critic: Annotated[str, OneOf(("source", "target_policy"))] = "source"
     """The critic that caps the target critic in Eq. 6: 'source' (both papers and the release: the source agent's
     critic, the value of the source policy) or 'target_policy' (beyond the papers: a critic in the source agent
@@ -987,9 +993,14 @@ def to_json(config: Config) -> str:
     return json.dumps(to_dict(config), indent=2, sort_keys=True)
 
 
-LEGACY_DEFAULTS: dict[str, Any] = {"world_model.gru_bias": False, "world_model.gru_eps": 1e-5}
+LEGACY_DEFAULTS: dict[str, Any] = {
+    "world_model.gru_bias": False,
+    "world_model.gru_eps": 1e-5,
+    "coworld.cap_form": "on_mean",
+}
 """What a saved config without these keys (written before they existed) computed: its GRU had no gate bias and
-LayerNorm's epsilon 1e-5. Keys added later with a default that computes what the older code did are not listed."""
+LayerNorm's epsilon 1e-5, and Eq. 6's term read the critic's mean (on a two-hot critic, the clamp). Keys added
+later with a default that computes what the older code did are not listed."""
 LEGACY_NORM_KEYS = ("world_model.mlp_norm", "actor_critic.mlp_norm")
 """Norms a config saved before they took norm names held as true / false (LayerNorm or none)."""
 

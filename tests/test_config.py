@@ -147,3 +147,12 @@ def test_a_saved_config_is_checked_when_read_back():
     data["coworld"]["zeta"] = 0.0
     with pytest.raises(ConfigError, match="coworld.zeta=0.0 is out of range"):
         from_dict(data)
+
+
+def test_a_config_saved_before_the_cap_form_existed_loads_with_the_form_it_ran() -> None:
+    """Runs saved before ``coworld.cap_form`` read Eq. 6's term on the critic's mean; loading one must say so, not
+    take today's default (its two-hot critic would be reported, resumed and evaluated as another model)."""
+    saved = to_dict(make_config("cpu"))
+    del saved["coworld"]["cap_form"]
+    assert from_dict(saved).coworld.cap_form == "on_mean"
+    assert from_dict(to_dict(make_config("cpu"))).coworld.cap_form == "shift"

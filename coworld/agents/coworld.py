@@ -144,7 +144,7 @@ class CoWorld:
         def objective(feat: Tensor, value: Any, target: Tensor, weight: Tensor) -> tuple[Tensor, dict[str, Tensor]]:
             with torch.no_grad():
                 source_value = source_critic(feat).mean
-            loss = regularised_critic_loss(value, target, weight, source_value, cfg.alpha, cfg.zeta)
+            loss = regularised_critic_loss(value, target, weight, source_value, cfg.alpha, cfg.zeta, cfg.cap_form)
             with torch.no_grad():
                 mean = value.mean.detach()
                 metrics = {

@@ -10,8 +10,8 @@ per-element arithmetic here can be held side by side with the paper:
   :func:`alignment_term`.
 * Eqs. 4-5, target-modulated source reward: :func:`relabel_reward`, :func:`source_reward_loss_on_target` and
   :func:`reward_mix_eta`.
-* Eq. 6, max-min value regularisation: :func:`value_regulariser`, :func:`max_min_active`, and the critic
-  objective the target agent trains with, :func:`regularised_critic_loss`.
+* Eq. 6, max-min value regularisation: :func:`value_regulariser`, :func:`max_min_active`, :func:`shifted_return`,
+  and the critic objective the target agent trains with, :func:`regularised_critic_loss`.
 * Several candidate sources (the later paper's multi-source CoWorld): :func:`domain_distance` (Eq. 3's KL as a
   distance) and :func:`closest_source` (the choice).
 
@@ -41,6 +41,7 @@ __all__ = [
     "regularised_critic_loss",
     "relabel_reward",
     "reward_mix_eta",
+    "shifted_return",
     "source_reward_loss_on_target",
     "value_regulariser",
 ]
@@ -48,6 +49,8 @@ __all__ = [
 
 RELABEL_FORMS = ("table3", "later")
 """The two ways the versions of the method write Eq. 4 (:func:`relabel_reward`)."""
+CAP_FORMS = ("shift", "on_mean")
+"""How Eq. 6's max-min term acts on the target critic (:func:`regularised_critic_loss`)."""
 
 
 def _check_same_shape(**tensors: Tensor) -> None:
@@ -322,6 +325,28 @@ def value_regulariser(target_value: Tensor, source_value: Tensor, zeta: float) -
     return torch.where(scaled > capped, scaled, capped)
 
 
+def shifted_return(target: Tensor, target_value: Tensor, source_value: Tensor, alpha: float, zeta: float) -> Tensor:
+    """The lambda-return lowered by ``alpha * zeta`` where Eq. 6's max-min term binds: ``V_t - alpha * zeta * active``.
+
+    On a unit-variance Gaussian critic ``0.5 * (v - V)^2 + alpha * zeta * v = 0.5 * (v - (V - alpha * zeta))^2 +
+    const``: wherever the term binds, Eq. 6 is exactly a regression onto this target. A critic of any other
+    distribution fitted to it gets the same push in value units and the same fixed point, ``alpha * zeta`` below
+    its lambda-return, which the term itself on its mean does not give (:func:`regularised_critic_loss`).
+
+    Args:
+        target: ``(H, N)`` lambda-returns ``V_lambda``; detached here.
+        target_value: ``(H, N)`` the target critic's mean ``v_T(z)``, which decides where the term binds.
+        source_value: ``(H, N)`` source critic values ``v_S(z)``.
+        alpha: scale of the max-min term, non-negative.
+        zeta: scale of the target values inside the max, positive.
+
+    Returns:
+        ``(H, N)`` regression target, no gradient.
+    """
+    active = max_min_active(target_value, source_value, zeta)
+    return target.detach() - (alpha * zeta) * active.to(target.dtype)
+
+
 def regularised_critic_loss(
     value: UnitGaussian | TwoHotSymlog | Tensor,
     target: Tensor,
@@ -329,6 +354,7 @@ def regularised_critic_loss(
     source_value: Tensor,
     alpha: float,
     zeta: float,
+    form: str = "shift",
 ) -> Tensor:
     """Target critic objective of Eq. 6, as the target agent's critic step computes it.
 
@@ -339,9 +365,21 @@ def regularised_critic_loss(
 
     The first term is DreamerV2's critic regression onto the lambda-returns ``V_t``
     (:func:`~coworld.losses.dreamer.critic_loss`: a unit-variance Gaussian's negative log-likelihood up to its
-    constant, or a two-hot critic's cross-entropy); the second is :func:`value_regulariser` on the critic's mean.
-    Both are multiplied by ``weight``, DreamerV2's cumulative imagination discount (detached), as in DreamerV2 and
-    the release. Pass the ``H`` steps that Eq. 6 sums over (DreamerV2 fits values on all but the last imagined
+    constant, or a two-hot critic's cross-entropy). The second, on a binding state (``zeta * v_T > v_S``), has
+    gradient ``alpha * zeta`` in ``v_T`` and moves the state's fixed point ``alpha * zeta`` below its lambda-return:
+    a soft push, the same whatever the state's value. ``form`` says how a critic gets it:
+
+    * ``'shift'`` (the default): the paper's loss as written on a Gaussian critic (or a plain mean); on a two-hot
+      critic the cross-entropy against :func:`shifted_return`, the lambda-return lowered by ``alpha * zeta`` where
+      the term binds, which has the same push and fixed point.
+    * ``'on_mean'``: the paper's loss on every critic, the max-min term read on the critic's mean (the same as
+      ``'shift'`` on a Gaussian). On a two-hot critic it is not the paper's term: the mean ``symexp(sum_k p_k b_k)``
+      has ``d mean / d logit_j = symexp'(m) p_j (b_j - m)``, a push that grows with ``|v| + 1`` and is cheapest on the
+      outer bins, so the loss has no minimum above the cap and clamps ``v_T <= v_S / zeta`` instead
+      (docs/algorithms.md, "Eq. 6 on a two-hot critic"). Kept to compare with.
+
+    Both terms are multiplied by ``weight``, DreamerV2's cumulative imagination discount (detached), as in DreamerV2
+    and the release. Pass the ``H`` steps that Eq. 6 sums over (DreamerV2 fits values on all but the last imagined
     state).
 
     Release difference: the release uses ``zeta = 1`` and the same ``weight`` on both terms, then averages over all
@@ -354,6 +392,7 @@ def regularised_critic_loss(
         source_value: ``(H, N)`` source critic values ``v_S(z)`` on the same states; detached here.
         alpha: scale of the max-min term, non-negative.
         zeta: scale of the target values inside the max, positive.
+        form: one of :data:`CAP_FORMS`.
 
     Returns:
         ``(H, N)`` per-step loss; for a Gaussian critic its gradient with respect to the mean ``v_T`` is
@@ -361,6 +400,10 @@ def regularised_critic_loss(
     """
     if alpha < 0.0:
         raise ValueError(f"alpha must be non-negative, got {alpha}")
+    if form not in CAP_FORMS:
+        raise ValueError(f"form must be one of {', '.join(CAP_FORMS)}, got {form!r}")
     mean = value if isinstance(value, Tensor) else value.mean
     _check_same_shape(value=mean, target=target, source_value=source_value, weight=weight)
+    if form == "shift" and isinstance(value, TwoHotSymlog):
+        return critic_loss(value, shifted_return(target, mean, source_value, alpha, zeta), weight)
     return critic_loss(value, target, weight) + weight.detach() * (alpha * value_regulariser(mean, source_value, zeta))

@@ -45,6 +45,7 @@ SHARED_KEYS = frozenset(
         "value_reg",
         "alpha",
         "zeta",
+        "cap_form",
     )
 )
 """The settings that source pretraining never reads (``coworld.cap_critic`` is not one: the target-policy critic

@@ -159,3 +159,36 @@ def test_eq5_eta_runs_from_start_to_end_over_the_runs_source_updates() -> None:
     steps = [reward_mix_eta(done, 10, 1.0, 0.1) for done in (0, 5, 10, 20)]
     np.testing.assert_allclose(steps, [1.0, 0.55, 0.1, 0.1])
     assert reward_mix_eta(7, 10, 0.9875, 0.9875) == 0.9875
+
+
+@pytest.mark.parametrize("form", ["shift", "on_mean"])
+def test_a_twohot_target_critic_is_trained_with_the_configured_form_of_eq6(target_batch, form: str) -> None:
+    """The ``cpu`` preset's two-hot critic, through the real target update: 'shift' (the default) fits the
+    lambda-return lowered by alpha * zeta where the cap binds, 'on_mean' adds the term on the critic's mean."""
+    agent = _agent("coworld.align=false", "train.actor_warmup=0", f"coworld.cap_form={form}", preset="cpu")
+    cfg = agent.config.coworld
+    assert agent.config.actor_critic.critic_dist == "twohot"
+    with torch.no_grad():  # a source critic far below the target critic's 0: the cap binds on every state
+        agent.source.actor_critic.critic.mlp.net[-1].bias[100] = 30.0
+    calls: list[dict[str, Any]] = []
+    original = agent.target.train_actor_critic
+
+    def spy(post: Any, objective: Any = None, **kwargs: Any) -> Any:
+        def recording(feat: Tensor, value: Any, target: Tensor, weight: Tensor) -> Any:
+            out, metrics = objective(feat, value, target, weight)
+            calls.append({"value": value, "target": target, "weight": weight, "out": out, "metrics": metrics})
+            return out, metrics
+
+        return original(post, recording, **kwargs)
+
+    agent.target.train_actor_critic = spy
+    agent.train_target(target_batch(b=2, t=4))
+    call = calls[0]
+    value, target, weight = call["value"], call["target"].detach(), call["weight"]
+    assert float(call["metrics"]["coworld/maxmin_active"]) == 1.0
+    with torch.no_grad():
+        if form == "shift":
+            expected = -weight * value.log_prob(target - cfg.alpha * cfg.zeta)
+        else:
+            expected = weight * (-value.log_prob(target) + cfg.alpha * cfg.zeta * value.mean)
+    torch.testing.assert_close(call["out"].detach(), expected)

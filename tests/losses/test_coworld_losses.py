@@ -247,13 +247,13 @@ def test_regularised_critic_loss_term_by_term() -> None:
     torch.testing.assert_close(unweighted, torch.tensor([[1.4, 0.625]]))
 
 
-def test_regularised_critic_loss_of_a_twohot_critic_is_its_cross_entropy_plus_the_max_min_term() -> None:
-    """Eq. 6 with the ``cpu`` preset's two-hot critic: the regression term is the critic's own negative
-    log-likelihood of the lambda-return, the max-min term reads the critic's mean."""
+def test_the_on_mean_form_on_a_twohot_critic_is_its_cross_entropy_plus_the_max_min_term() -> None:
+    """Eq. 6 read on a two-hot critic's mean (``cap_form='on_mean'``): the regression term is the critic's own
+    negative log-likelihood of the lambda-return, the max-min term reads the critic's mean."""
     logits = torch.randn(2, 3, TWOHOT_BINS, generator=torch.Generator().manual_seed(0))
     value = TwoHotSymlog(logits)
     returns, source, weight = torch.full((2, 3), 0.5), torch.zeros(2, 3), torch.full((2, 3), 0.8)
-    loss = regularised_critic_loss(value, returns, weight, source, alpha=0.3, zeta=2.0)
+    loss = regularised_critic_loss(value, returns, weight, source, alpha=0.3, zeta=2.0, form="on_mean")
     expected = weight * (-value.log_prob(returns) + 0.3 * torch.maximum(2.0 * value.mean, source))
     torch.testing.assert_close(loss, expected)
 
