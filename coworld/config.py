@@ -732,6 +732,21 @@ PRESETS: dict[str, dict[str, Any]] = {
 }
 
 
+DREAMERV2_BEHAVIOUR: dict[str, Any] = {
+    "actor_critic.critic_dist": "gaussian",
+    "actor_critic.critic_target": "slow",
+    "actor_critic.slow_target_every": 100,
+    "actor_critic.slow_target_fraction": 1.0,
+    "actor_critic.slow_regulariser": 0.0,
+    "actor_critic.return_norm": False,
+    "world_model.reward_dist": "gaussian",
+}
+"""DreamerV2's behaviour learning where the ``cpu`` preset has DreamerV3's: a unit Gaussian critic whose
+lambda-returns bootstrap from a slow critic copied every 100 updates, a Gaussian reward head, returns not normalised.
+The critic and heads the paper's Eqs. 4-6 are written for (and the authors' release runs: ``value_head: normal``, a
+slow target every 100 updates), at the ``cpu`` preset's sizes: the ``cpu-dv2`` preset."""
+PRESETS["cpu-dv2"] = {**PRESETS["cpu"], **DREAMERV2_BEHAVIOUR}
+
 SETTINGS: dict[str, dict[str, Any]] = {
     # The paper text's Table 3: the defaults.
     "table3": {},

@@ -156,3 +156,34 @@ def test_a_config_saved_before_the_cap_form_existed_loads_with_the_form_it_ran()
     del saved["coworld"]["cap_form"]
     assert from_dict(saved).coworld.cap_form == "on_mean"
     assert from_dict(to_dict(make_config("cpu"))).coworld.cap_form == "shift"
+
+
+def test_the_cpu_dv2_preset_is_the_cpu_preset_with_dreamerv2s_behaviour_learning() -> None:
+    """A Gaussian critic bootstrapped from a slow critic copied every 100 updates, a Gaussian reward head, returns
+    not normalised; every other value the ``cpu`` preset's, with each version's settings on top."""
+    cpu, dv2 = to_dict(make_config("cpu")), to_dict(make_config("cpu-dv2"))
+    differ = {
+        f"{section}.{key}"
+        for section, values in cpu.items()
+        if isinstance(values, dict)
+        for key in values
+        if values[key] != dv2[section][key]
+    }
+    assert differ == {
+        "actor_critic.critic_dist",
+        "actor_critic.critic_target",
+        "actor_critic.slow_target_every",
+        "actor_critic.slow_target_fraction",
+        "actor_critic.slow_regulariser",
+        "actor_critic.return_norm",
+        "world_model.reward_dist",
+    }
+    ac, wm = make_config("cpu-dv2").actor_critic, make_config("cpu-dv2").world_model
+    assert (ac.critic_dist, ac.critic_target, ac.slow_target_every, ac.slow_target_fraction) == (
+        "gaussian",
+        "slow",
+        100,
+        1.0,
+    )
+    assert (ac.slow_regulariser, ac.return_norm, wm.reward_dist) == (0.0, False, "gaussian")
+    assert make_config("cpu-dv2+later-dmc").coworld == make_config("cpu+later-dmc").coworld

@@ -425,7 +425,8 @@ def test_the_cap_study_runs_each_arm_on_dmc_cpus_cheetah_pair() -> None:
         return make_config(spec.preset, spec.run_overrides(run))
 
     assert config("coworld", "").coworld.zeta == 1.0 and config("coworld", "zeta10").coworld.zeta == 10.0
-    assert config("coworld", "later-dmc").coworld == make_config("cpu+later-dmc", dmc.overrides).coworld
+    later = make_config("cpu+later-dmc", [*dmc.overrides, "coworld.cap_form=on_mean"]).coworld
+    assert config("coworld", "later-dmc").coworld == later
     assert config("coworld", "target-policy").coworld.cap_critic == "target_policy"
     assert config("coworld", "no-align").coworld == dataclasses.replace(config("coworld", "").coworld, align=False)
     control = dataclasses.replace(config("coworld", "").coworld, align=False, value_reg=False)
@@ -433,3 +434,44 @@ def test_the_cap_study_runs_each_arm_on_dmc_cpus_cheetah_pair() -> None:
     for algo in ("coworld", "dreamerv2"):  # 4x the target updates, the rest as dmc-cpu
         assert config(algo, "4x").coworld.target_updates == 4 * config(algo, "").coworld.target_updates
     assert config("dreamerv2-penalty", "").penalty.model_updates == 2_500  # a quarter of its 10,000 updates
+    assert config("coworld", "").coworld.cap_form == "on_mean"  # the form the committed study ran
+
+
+def test_the_cap_shift_table_asks_the_cap_study_again_with_the_papers_push() -> None:
+    """Issue 79's table: the cap study's pair, dataset, schedule, seeds and evaluation; CoWorld without alignment under
+    the shift, its control, CoWorld whole, at the later paper's DMC settings, without alignment under the clamp, and
+    offline DreamerV2 as the preset gives it and at the cpu-dv2 behaviour; every CoWorld run of a seed shares one
+    source pretraining, so each arm pairs with its seed's control."""
+    spec = named_table("cap-shift").check()
+    study = named_table("cap-study")
+    assert (spec.pairs, spec.data, spec.seeds, spec.eval_episodes) == (study.pairs, study.data, (0, 1, 2), 10)
+    assert set(spec.overrides) <= set(study.overrides) and spec.preset == "cpu"
+    order = list(dict.fromkeys((run.algo, run.variant) for run in spec.runs()))
+    assert order == [
+        ("coworld", "no-align"),
+        ("coworld", "no-align-no-cap"),
+        ("coworld", ""),
+        ("coworld", "later-dmc"),
+        ("coworld", "no-align-clamp"),
+        ("dreamerv2", ""),
+        ("dreamerv2", "dv2"),
+    ]
+
+    def config(algo: str, variant: str):
+        run = next(r for r in spec.runs() if (r.algo, r.variant) == (algo, variant))
+        return make_config(spec.preset, spec.run_overrides(run))
+
+    whole = config("coworld", "").coworld
+    assert whole.cap_form == "shift" and whole.value_reg and whole.align
+    assert config("coworld", "no-align").coworld == dataclasses.replace(whole, align=False)
+    assert config("coworld", "no-align-no-cap").coworld == dataclasses.replace(whole, align=False, value_reg=False)
+    clamp = config("coworld", "no-align-clamp").coworld
+    assert clamp == dataclasses.replace(whole, align=False, cap_form="on_mean")
+    assert config("coworld", "later-dmc").coworld == make_config("cpu+later-dmc", spec.overrides).coworld
+    assert config("dreamerv2", "dv2") == make_config("cpu-dv2", spec.overrides)
+    assert config("dreamerv2", "").actor_critic.critic_dist == "twohot"
+    shared = spec.shared_pretraining()
+    for seed in spec.seeds:
+        names = {run.name for run in spec.runs() if run.algo == "coworld" and run.seed == seed}
+        for name in names:
+            assert {other.name for other in shared[name]} == names - {name}
