@@ -14,7 +14,7 @@ import io
 import json
 import math
 import os
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -22,6 +22,7 @@ from typing import Any
 from coworld import envs
 from coworld.errors import CoworldError, UnknownTaskError
 from coworld.report.paper import Published, published
+from coworld.text import count
 from coworld.training.description import run_description
 from coworld.training.logger import read_metrics
 
@@ -251,7 +252,25 @@ def _metrics(run_dir: Path, problems: list[str]) -> list[dict[str, Any]]:
     good = [r for r in records if isinstance(r, dict) and _is_step(r.get("step"))]
     if len(good) < len(records):
         problems.append(f"{run_dir / 'metrics.jsonl'}: {len(records) - len(good)} records without a step skipped")
-    return _one_segment(good)
+    damage = [(r, _record_damage(r)) for r in good]
+    damaged = [(r, what) for r, what in damage if what]
+    if damaged:
+        first, what = damaged[0]
+        problems.append(
+            f"{run_dir / 'metrics.jsonl'}: {count(len(damaged), 'record')} holding a value that is not a finite"
+            f" number skipped (the first at step {first['step']}: {what})"
+        )
+    return _one_segment([r for r, what in damage if not what])
+
+
+def _record_damage(record: Mapping[str, Any]) -> str:
+    """The first value of a metrics record that is not a finite number (``unit``: not a string), as ``'wm/kl is
+    NaN'``; '' where there is none. The logger writes a value that was not finite as null: that record is skipped
+    whole, as one holding NaN is, and none of its values is drawn."""
+    for key, value in record.items():
+        if not (isinstance(value, str) if key == "unit" else _is_step(value)):
+            return f"{key} is {_kind(value)}"
+    return ""
 
 
 def _one_segment(records: list[dict[str, Any]]) -> list[dict[str, Any]]:
@@ -327,9 +346,10 @@ def dataset_quality(path: Any) -> str | None:
 
 
 def _mean(values: Any) -> float | None:
+    """The mean of a list of numbers; None for an empty list or None (not measured)."""
     if not values:
         return None
-    return float(sum(values) / len(values))
+    return float(sum(float(v) for v in values) / len(values))
 
 
 class UnreadableRun(CoworldError):
@@ -374,6 +394,66 @@ def _foreign_evaluation(result: Mapping[str, Any] | None, info: Mapping[str, Any
     return ""
 
 
+EPISODE_FIELDS = ("lengths", "successes", "value_estimate", "value_true", "value_source", "reward_estimate",
+                  "reward_true")  # fmt: skip
+"""eval.json's per-episode lists beside ``returns``, each null where not measured."""
+
+
+def evaluation_damage(result: Mapping[str, Any]) -> str:
+    """What in an eval.json is not what ``coworld eval`` writes, '' where nothing is: ``returns`` must be a
+    non-empty list of finite numbers, each of :data:`EPISODE_FIELDS` a list of finite numbers (``successes``: of
+    true / false) or null, ``std`` a finite number and ``success_rate`` one or null. E.g. ``returns must be a list of
+    finite numbers, got a string``: a string's characters, or a NaN, would otherwise become a result."""
+    returns = result.get("returns", _MISSING)
+    wrong = "got an empty list" if returns == [] else _not_a_list_of(returns, _is_step)
+    if wrong:
+        return f"returns must be a list of finite numbers, {wrong}"
+    for key in EPISODE_FIELDS:
+        value, flags = result.get(key), key == "successes"
+        wrong = "" if value is None else _not_a_list_of(value, _is_flag if flags else _is_step)
+        if wrong:
+            return f"{key} must be a list of {'true / false' if flags else 'finite numbers'} or null, {wrong}"
+    if "std" in result and not _is_step(result["std"]):
+        return f"std must be a finite number, got {_kind(result['std'])}"
+    rate = result.get("success_rate")
+    if rate is not None and not _is_step(rate):
+        return f"success_rate must be a finite number or null, got {_kind(rate)}"
+    return ""
+
+
+def _is_flag(value: Any) -> bool:
+    return isinstance(value, bool) or _is_step(value)
+
+
+_MISSING = object()
+"""A key that is not there (:func:`_kind` says "nothing")."""
+
+
+def _not_a_list_of(values: Any, fits: Callable[[Any], bool]) -> str:
+    """'' where ``values`` is a list whose every item ``fits``, else what it holds: ``got a string``, ``got NaN at
+    index 1``."""
+    if not isinstance(values, list):
+        return f"got {_kind(values)}"
+    bad = next((i for i, v in enumerate(values) if not fits(v)), None)
+    return "" if bad is None else f"got {_kind(values[bad])} at index {bad}"
+
+
+def _kind(value: Any) -> str:
+    """What a JSON value is, for a line about it: ``NaN``, ``Infinity``, ``a string``, ``an object``, ``null``."""
+    if value is _MISSING:
+        return "nothing"
+    if value is None:
+        return "null"
+    if isinstance(value, bool):
+        return "a bool"
+    if isinstance(value, int | float):
+        if math.isnan(value):
+            return "NaN"
+        return "a number" if math.isfinite(value) else ("Infinity" if value > 0 else "-Infinity")
+    names = {str: "a string", list: "a list", dict: "an object"}
+    return names.get(type(value), type(value).__name__)
+
+
 def load_result(run_dir: Path, qualities: dict[str, str | None] | None = None) -> RunResult:
     """The :class:`RunResult` of one run folder; a file of it that cannot be read is skipped and named in
     ``problems`` (a ``config.json`` leaves the whole run out: :class:`UnreadableRun`). ``qualities``: dataset path
@@ -394,22 +474,18 @@ def load_result(run_dir: Path, qualities: dict[str, str | None] | None = None) -
     if foreign:
         problems.append(f"{run_dir / 'eval.json'}: {foreign}")
         result = None
+    damage = "" if result is None else evaluation_damage(result)
+    if damage:
+        problems.append(f"{run_dir / 'eval.json'}: not an evaluation record ({damage})")
+        result = None
     if result is not None:
-        try:
-            returns = [float(r) for r in result["returns"]]
-            if not returns:
-                raise ValueError("no returns")
-            final, episodes = _mean(returns), len(returns)
-            std = float(result.get("std", 0.0))
-            success = None if result.get("success_rate") is None else float(result["success_rate"])
-            estimate = _mean([float(v) for v in result.get("value_estimate") or []])
-            true = _mean([float(v) for v in result.get("value_true") or []])
-            capping = _mean([float(v) for v in result.get("value_source") or []])
-            predicted = _mean([float(v) for v in result.get("reward_estimate") or []])
-            arrived = _mean([float(v) for v in result.get("reward_true") or []])
-        except (ValueError, KeyError, TypeError) as err:
-            problems.append(f"{run_dir / 'eval.json'}: not an evaluation record ({type(err).__name__}: {err})")
-            final = std = success = estimate = true = capping = predicted = arrived = episodes = None
+        returns = [float(r) for r in result["returns"]]
+        final, episodes = _mean(returns), len(returns)
+        std = float(result.get("std", 0.0))
+        success = None if result.get("success_rate") is None else float(result["success_rate"])
+        estimate, true = _mean(result.get("value_estimate")), _mean(result.get("value_true"))
+        capping = _mean(result.get("value_source"))
+        predicted, arrived = _mean(result.get("reward_estimate")), _mean(result.get("reward_true"))
     records = _metrics(run_dir, problems)
     return RunResult(
         run_dir=str(run_dir),
