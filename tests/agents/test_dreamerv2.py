@@ -265,8 +265,44 @@ def test_bf16_autocast_step_runs_on_cpu(tiny: Config) -> None:
     assert all(p.dtype == torch.float32 for p in agent.world_model.parameters())
 
 
+def _traced_without_codegen(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Make ``compile=true`` trace as it does (dynamo, ``fullgraph``, static shapes) but run the captured graphs
+    through AOT autograd in eager kernels (``backend='aot_eager'``) instead of generating C++ with inductor: the
+    project's side of compiling (whole graphs without a break, the same draws, the same state-dict keys), without
+    inductor's minutes of C++ compilation."""
+    compile_fn, module_compile = torch.compile, torch.nn.Module.compile
+
+    def traced(fn, *, options=None, backend=None, **kwargs):
+        del options, backend  # inductor's options; nn.Module.compile passes its own backend through here
+        return compile_fn(fn, backend="aot_eager", **kwargs)
+
+    def module_traced(self, *, options=None, **kwargs):
+        del options
+        return module_compile(self, backend="aot_eager", **kwargs)
+
+    monkeypatch.setattr(torch, "compile", traced)
+    monkeypatch.setattr(torch.nn.Module, "compile", module_traced)
+
+
+def test_compiled_agent_traces_whole_matches_eager_and_shares_checkpoints(
+    tiny: Config, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The fast suite's form of the inductor test below: the update's graphs trace whole (a graph break raises),
+    and the compiled agent draws and computes what the eager one does, with the same checkpoint layout."""
+    torch._dynamo.reset()
+    _traced_without_codegen(monkeypatch)
+    _check_compiled_against_eager(tiny, lengths=(2, 2, 3))
+    torch._dynamo.reset()
+
+
+@pytest.mark.slow
 def test_compiled_agent_matches_eager_and_shares_checkpoints(tiny: Config) -> None:
-    """torch.compile (inductor, here on CPU) changes neither the numbers nor the checkpoint layout."""
+    """torch.compile (inductor, here on CPU) changes neither the numbers nor the checkpoint layout. Slow: inductor's
+    C++ compilation takes minutes, and many more on a loaded machine."""
+    _check_compiled_against_eager(tiny, lengths=(4, 4, 5))
+
+
+def _check_compiled_against_eager(tiny: Config, lengths: tuple[int, ...]) -> None:
     eager = DreamerV2(config=tiny, action_size=ACTION_SIZE)
     compiled = DreamerV2(config=make_config("tiny", {"device": "cpu", "compile": True}), action_size=ACTION_SIZE)
     assert compiled.compiled and not eager.compiled
@@ -274,7 +310,7 @@ def test_compiled_agent_matches_eager_and_shares_checkpoints(tiny: Config) -> No
     assert list(compiled.state_dict()["world_model"]) == list(eager.state_dict()["world_model"])
     # The second step runs the already compiled graphs; the third's batch has another length, which compiles
     # anew (traced with symbolic sizes, the truncated normal's sample raised there).
-    for batch in (numpy_batch(length=4), numpy_batch(length=4), numpy_batch(length=5)):
+    for batch in (numpy_batch(length=length) for length in lengths):
         torch.manual_seed(1)
         want = eager.train(batch)
         torch.manual_seed(1)
