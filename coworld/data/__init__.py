@@ -12,7 +12,7 @@ import and Minari / npz-episode export. ``datasets/README.md`` documents the for
     d4rl = coworld.data.load("walker_walk-random")  # observations, actions, rewards, terminals, timeouts
 """
 
-from coworld.data.api import Episode, episodes, load, resolve_dataset
+from coworld.data.api import Episode, episodes, load, qlearning_dataset, resolve_dataset
 from coworld.data.collect import Budget, CollectSummary, UniformPolicy, collect_random, run_collection
 from coworld.data.export import export_minari, export_npz_episodes
 from coworld.data.merge import merge_datasets
@@ -43,6 +43,7 @@ __all__ = [
     "export_npz_episodes",
     "import_vd4rl",
     "load",
+    "qlearning_dataset",
     "merge_datasets",
     "normalized_score",
     "open_dataset",

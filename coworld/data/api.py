@@ -1,9 +1,11 @@
-"""A D4RL-style Python API: ``load(path_or_name)`` gives the D4RL dict, ``episodes(path_or_name)`` the episodes.
+"""A D4RL-style Python API: ``load(path_or_name)`` gives the D4RL dict, ``qlearning_dataset(path_or_name)`` the same
+with ``next_observations``, ``episodes(path_or_name)`` the episodes.
 
 import coworld.data
 
 data = coworld.data.load("walker_uphill-medium-replay")      # datasets/walker_uphill-medium_replay.h5
 data["observations"].shape                                   # (N, 64, 64, 3) uint8
+q = coworld.data.qlearning_dataset("walker_uphill-medium-replay")  # the same plus next_observations (N, 64, 64, 3)
 for episode in coworld.data.episodes("datasets/walker_uphill-medium_replay.h5"):
     episode.observations.shape                               # (T + 1, 64, 64, 3): o_0 .. o_T
 """
@@ -92,6 +94,16 @@ def load(path_or_name: str | Path) -> dict[str, np.ndarray]:
     with open_dataset(resolve_dataset(path_or_name)) as data:
         warn_incomplete(data)
         return data.to_d4rl()
+
+
+def qlearning_dataset(path_or_name: str | Path) -> dict[str, np.ndarray]:
+    """The dataset as D4RL's ``qlearning_dataset`` dict: :func:`load`'s keys plus ``next_observations``
+    (N, 64, 64, 3) uint8, the observation each row's action led to (at an episode's last row, its final frame, which
+    the file keeps, so no transition is dropped where D4RL drops each timed-out episode's last). The file stores
+    every frame once; this dict holds two copies in memory, as D4RL's does."""
+    with open_dataset(resolve_dataset(path_or_name)) as data:
+        warn_incomplete(data)
+        return data.to_qlearning()
 
 
 def episodes(path_or_name: str | Path) -> Iterator[Episode]:

@@ -121,7 +121,8 @@ def export_minari(
     The dataset lands in Minari's root (``MINARI_DATASETS_PATH``, default ``~/.minari/datasets``). Its metadata
     holds Gymnasium spaces (``Box(0, 255, (64, 64, 3), uint8)`` frames, ``Box(-1, 1, (A,), float32)`` actions),
     ``ref_min_score`` / ``ref_max_score`` from our reference returns (so ``minari.get_normalized_score`` works),
-    ``eval_env_spec`` = ``coworld/<task>-v0`` for a registered task, and everything of ours under ``coworld``
+    ``env_spec`` and ``eval_env_spec`` = ``coworld/<task>-v0`` for a registered task (so
+    ``recover_environment()`` makes it, with or without ``eval_env=True``), and everything of ours under ``coworld``
     (task, quality, env config, collector, reference, versions, source file). Each episode carries its return and
     reward statistics (``rewards_sum``, ``rewards_mean``, ... as Minari's data collector records them). Infos are
     padded to T+1 entries as Minari records them (entry 0, the reset's, is zero; entry j is the info of the step
@@ -238,8 +239,8 @@ def _minari_metadata(
     if "random_return" in reference and "reference_return" in reference:
         fields["ref_min_score"] = float(reference["random_return"])
         fields["ref_max_score"] = float(reference["reference_return"])
-    if env_id(data.task) in gym.registry:
-        fields["eval_env_spec"] = gym.spec(env_id(data.task)).to_json()
+    if env_id(data.task) in gym.registry:  # the task the data came from, and the one to evaluate in
+        fields["env_spec"] = fields["eval_env_spec"] = gym.spec(env_id(data.task)).to_json()
     optional = {"author": author and {author}, "author_email": author_email and {author_email}}
     fields.update({key: value for key, value in optional.items() if value})
     if code_permalink:

@@ -277,6 +277,19 @@ class Dataset:
             out[f"infos/{name}"] = f["infos"][name][:n]
         return out
 
+    def to_qlearning(self) -> dict[str, np.ndarray]:
+        """:meth:`to_d4rl` plus ``next_observations`` (N, H, W, C), D4RL's ``qlearning_dataset`` key: row ``i``'s
+        ``o_{t+1}``, the next row's frame, or at an episode's last row its final frame
+        (``episodes/final_observations``). The file holds every frame once; this builds both arrays in memory."""
+        out = self.to_d4rl()
+        observations = out["observations"]
+        following = np.empty_like(observations)
+        following[:-1] = observations[1:]
+        finals = np.empty((self.num_episodes, *self.image_shape), np.uint8)
+        self._read(self._handle()["episodes/final_observations"], finals, 0, self.num_episodes)
+        following[self.starts + self.lengths - 1] = finals
+        return {**out, "next_observations": following}
+
     def step_arrays(self) -> StepArrays:
         """The non-frame part of every step, built once (about 4 * A + 7 bytes per step)."""
         if self._steps is None:

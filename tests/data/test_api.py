@@ -45,6 +45,22 @@ def test_load_gives_the_d4rl_dict(dataset_path: Path, episodes: list[dict[str, A
     np.testing.assert_array_equal(data["infos/success"], np.concatenate([ep["infos"]["success"] for ep in episodes]))
 
 
+def test_qlearning_dataset_adds_each_rows_next_observation(dataset_path: Path, episodes: list[dict[str, Any]]) -> None:
+    """D4RL's ``qlearning_dataset`` view: row i's next observation is o_{t+1} of its own episode, the final frame at
+    its last row; every other key is :func:`coworld.data.load`'s."""
+    data = coworld.data.qlearning_dataset(dataset_path)
+    plain = coworld.data.load(dataset_path)
+    assert sorted(data) == sorted([*plain, "next_observations"])
+    for key, value in plain.items():
+        np.testing.assert_array_equal(data[key], value)
+    np.testing.assert_array_equal(
+        data["next_observations"], np.concatenate([ep["observations"][1:] for ep in episodes])
+    )
+    assert (
+        data["next_observations"].dtype == np.uint8 and data["next_observations"].shape == plain["observations"].shape
+    )
+
+
 def test_episodes_have_minaris_shapes(dataset_path: Path, episodes: list[dict[str, Any]]) -> None:
     got = list(coworld.data.episodes(dataset_path))
     assert [ep.index for ep in got] == list(range(len(episodes)))

@@ -117,9 +117,11 @@ def test_minari_export_loads_back_in_minari_and_matches_every_episode(
         assert f["episode_2/observations"].dtype == np.uint8 and f["episode_2/observations"].shape == (10, 64, 64, 3)
     # the evaluation env is our registered task, made by Gymnasium from the spec stored in the metadata
     assert EnvSpec.from_json(meta["eval_env_spec"]).id == "coworld/walker_walk-v0"
-    env = dataset.recover_environment(eval_env=True)
-    assert env.unwrapped.task.name == "walker_walk" and env.reset(seed=0)[0].shape == (64, 64, 3)
-    env.close()
+    for eval_env in (True, False):  # the data's env is the same registered task: Minari's default recovers it too
+        env = dataset.recover_environment(eval_env=eval_env)
+        assert env.unwrapped.task.name == "walker_walk" and env.reset(seed=0)[0].shape == (64, 64, 3)
+        env.close()
+    assert EnvSpec.from_json(meta["env_spec"]) == EnvSpec.from_json(meta["eval_env_spec"])
 
 
 def test_minari_export_refuses_to_overwrite_without_force(source: Path, minari_root: Path, tmp_path: Path) -> None:
