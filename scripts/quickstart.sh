@@ -26,5 +26,5 @@ $coworld dataset info "$dataset"
 
 run="$out/runs/coworld-walker_walk-walker_uphill"
 $coworld train --source walker_walk --target walker_uphill --dataset "$dataset" --preset tiny --logdir "$run"
-$coworld eval --ckpt "$run" --episodes 2 --workers 2 --video "$out/eval.mp4"
+$coworld eval --ckpt "$run" --episodes 2 --workers 2 --video "$out/eval.mp4" --force
 echo "quickstart: done; see $out"

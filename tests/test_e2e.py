@@ -99,6 +99,14 @@ def test_collect_train_eval(toy_dataset, tmp_path):
     assert len(result["value_estimate"]) == 3 and len(result["value_true"]) == 3
     assert len(result["reward_estimate"]) == 3 and len(result["reward_true"]) == 3
     assert result["mean"] == pytest.approx(sum(result["returns"]) / 3)
+    # a second evaluation keeps the first unless told to replace it, and says so in one line
+    before = (run / "eval.json").read_bytes()
+    again = subprocess.run([*CLI, "eval", "--ckpt", str(run), "--episodes", "2"], capture_output=True, text=True)
+    assert again.returncode == 2 and again.stderr.count("\n") == 1, again.stderr
+    assert "holds an earlier evaluation (3 episodes); kept. Pass --force" in again.stderr
+    assert (run / "eval.json").read_bytes() == before
+    cli("eval", "--ckpt", str(run), "--episodes", "2", "--device", "cpu", "--force")
+    assert len(json.loads((run / "eval.json").read_text())["returns"]) == 2
 
 
 def test_offline_dreamerv2_baseline(toy_dataset, tmp_path):

@@ -20,10 +20,11 @@ from coworld.commands.options import SEED, count_type, distinct_outputs, input_p
 @click.option("--video-episodes", type=count_type(0), default=1, show_default=True)
 @click.option("--out", type=output_file(), default=None, help="Results JSON; default <run folder>/eval.json.")
 @click.option("--task", default=None, help="Evaluate in another task than the run's target (same action size).")
+@click.option("--force", is_flag=True, help="Replace the results file (--out) if it holds an earlier evaluation.")
 @threads_option
 @click.option("--device", type=click.Choice(["auto", "cpu", "cuda"]), default="auto", show_default=True)
 @interrupt.at_safe_points
-def evaluate(ckpt, episodes, workers, seed, video, video_episodes, out, task, device) -> None:
+def evaluate(ckpt, episodes, workers, seed, video, video_episodes, out, task, force, device) -> None:
     """Evaluate a trained run: return, value and reward checks.
 
     Mean ± std return (and success rate on Meta-World) of a trained policy, plus the value and reward checks. The
@@ -43,6 +44,11 @@ def evaluate(ckpt, episodes, workers, seed, video, video_episodes, out, task, de
     run_dir = Path(ckpt) if Path(ckpt).is_dir() else Path(ckpt).parent
     out_path = Path(out) if out else run_dir / "eval.json"
     check_writable(out_path.parent, "--out")
+    if out_path.exists() and not force:
+        raise CoworldError(
+            f"{out_path} holds an earlier evaluation ({_held(out_path)}); kept. Pass --force to replace it,"
+            " or --out FILE to write this one elsewhere"
+        )
     if video:  # everything the end of the evaluation writes is checked before it starts
         distinct_outputs({"--out": out_path, "--video": Path(video)})
         output_kind(video, VIDEO_SUFFIXES)
@@ -84,6 +90,15 @@ def evaluate(ckpt, episodes, workers, seed, video, video_episodes, out, task, de
             raise _refused(err, f"the video to {video}", f"the results are in {out_path}") from None
         click.echo(f"video: {video}")
     click.echo(f"results: {out_path}")
+
+
+def _held(path: Path) -> str:
+    """What an earlier results file holds, in a few words (for the refusal to replace it)."""
+    try:
+        returns = json.loads(path.read_text())["returns"]
+        return f"{len(returns)} episodes" if isinstance(returns, list) else "unreadable"
+    except (OSError, ValueError, KeyError, TypeError):
+        return "unreadable"
 
 
 def _refused(err: OSError, what: str, instead: str) -> Exception:

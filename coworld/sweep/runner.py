@@ -178,7 +178,7 @@ def run_steps(
         train.append("--keep-pretrained")
         for folder in shares:
             train += ["--pretrained-from", str(folder)]
-    evaluate = ["eval", "--ckpt", str(run_dir), "--episodes", str(spec.eval_episodes), "--seed", "0"]
+    evaluate = ["eval", "--ckpt", str(run_dir), "--episodes", str(spec.eval_episodes), "--seed", "0", "--force"]
     evaluate += ["--out", str(run_dir / "eval.json.partial")]
     return (*train, *device, *threads), (*evaluate, *device, *threads)
 
