@@ -99,6 +99,14 @@ UNIT = Range(0, 1)
 PENALTY_WEIGHT = Range(0, 1e12)
 """A penalty's weight: the penalised losses are float32, where 1e300 is already infinite and trains to NaN; 1e12
 leaves every term in range while reaching far past any weight that keeps the loss's own part visible."""
+LEARNING_RATE = Range(0, 1, low_open=True)
+"""A learning rate: Adam moves each weight by about the learning rate per update, so above 1 a few updates leave
+weights no network starts from (a world model at 3 ends a tiny run with a finite loss of 2e32, at 1e30 every weight is
+NaN within updates); the methods here train at 1e-5 to 1e-3."""
+COWORLD_WEIGHT = Range(0, 1e3)
+"""A weight of CoWorld's terms (beta2, alpha): at 1e3 the term already outweighs the loss it is added to by orders of
+magnitude (the papers use 0.2 to 2); above it the target agent learns the term alone, and near float32's limit its
+losses overflow to inf."""
 MLP_LAYERS = Range(0, 100)
 """Hidden layers of a plain MLP (no normalisation, no residual connections): one of 100,000 layers builds for minutes,
 and none this deep learns."""
@@ -165,8 +173,8 @@ class WorldModelConfig:
     head has learned one."""
     unimix: Annotated[float, Range(0, 1, high_open=True)] = 0.0
     """Uniform mixture on the categorical latents (0 = DreamerV2; 0.01 = DreamerV3's)."""
-    lr: Annotated[float, POSITIVE] = 2e-4
-    """World-model learning rate (Table 3)."""
+    lr: Annotated[float, LEARNING_RATE] = 2e-4
+    """World-model learning rate (Table 3); at most 1 (:data:`LEARNING_RATE`)."""
     eps: Annotated[float, POSITIVE] = 1e-5
     """Adam epsilon."""
     weight_decay: Annotated[float, Range(0, 1, high_open=True)] = 1e-6
@@ -196,10 +204,10 @@ class ActorCriticConfig:
     """gamma (Table 3)."""
     lambda_: Annotated[float, UNIT] = 0.95
     """lambda of the lambda-return (Table 3)."""
-    actor_lr: Annotated[float, POSITIVE] = 4e-5
-    """Actor learning rate (Table 3)."""
-    critic_lr: Annotated[float, POSITIVE] = 1e-4
-    """Critic learning rate (Table 3)."""
+    actor_lr: Annotated[float, LEARNING_RATE] = 4e-5
+    """Actor learning rate (Table 3); at most 1 (:data:`LEARNING_RATE`)."""
+    critic_lr: Annotated[float, LEARNING_RATE] = 1e-4
+    """Critic learning rate (Table 3); at most 1 (:data:`LEARNING_RATE`)."""
     actor_entropy: Annotated[float, NON_NEGATIVE] = 1e-4
     """Entropy regularisation weight of the actor."""
     actor_grad: Annotated[str, OneOf(("dynamics", "reinforce"))] = "dynamics"
@@ -317,8 +325,8 @@ class CoWorldConfig:
     (Table 3's "source domain update steps": 2e4)."""
     align: bool = True
     """Eq. 3: align the target encoder to the source encoder on target frames."""
-    beta2: Annotated[float, NON_NEGATIVE] = 1.5
-    """Weight of the alignment KL (Table 3)."""
+    beta2: Annotated[float, COWORLD_WEIGHT] = 1.5
+    """Weight of the alignment KL (Table 3); at most 1e3 (:data:`COWORLD_WEIGHT`)."""
     align_on: Annotated[str, OneOf(("latent", "embedding"))] = "latent"
     """What is aligned: 'latent' (the posterior categorical, paper text) or 'embedding' (release's conv
     embedding through softmax)."""
@@ -339,10 +347,12 @@ class CoWorldConfig:
     source_updates`` source updates (the later paper: from 1 to 0.1; the release: fixed at 0.9875)."""
     value_reg: bool = True
     """Eq. 6: max-min value regularisation of the target critic by the source critic."""
-    alpha: Annotated[float, NON_NEGATIVE] = 0.2
-    """Weight of the value regulariser (Table 3)."""
-    zeta: Annotated[float, POSITIVE] = 1.0
-    """Rescales target values against source values in Eq. 6."""
+    alpha: Annotated[float, COWORLD_WEIGHT] = 0.2
+    """Weight of the value regulariser (Table 3); at most 1e3 (:data:`COWORLD_WEIGHT`)."""
+    zeta: Annotated[float, Range(0, 1e3, low_open=True)] = 1.0
+    """Rescales target values against source values in Eq. 6 (the papers: 1; the cap studies: up to 10); at most 1e3,
+    where the term binds nowhere a return could reach (``v_T <= v_S / zeta``) and the 'shift' form's ``alpha * zeta``
+    is already far past any return."""
     cap_form: Annotated[str, OneOf(("shift", "on_mean"))] = "shift"
     """How Eq. 6's max-min term reaches the target critic: 'shift' (a binding state's fixed point ``alpha * zeta``
     below its lambda-return on every critic: the paper's term on a Gaussian critic, the two-hot critic's target
@@ -390,14 +400,15 @@ class CurlConfig:
     """Gradient updates of an offline run."""
     discount: Annotated[float, Range(0, 1, low_open=True)] = 0.99
     """gamma."""
-    actor_lr: Annotated[float, POSITIVE] = 1e-3
-    """Actor learning rate (CURL: 1e-3; 2e-4 for cheetah run)."""
-    critic_lr: Annotated[float, POSITIVE] = 1e-3
-    """Critic (and encoder) learning rate (CURL: 1e-3; 2e-4 for cheetah run)."""
-    encoder_lr: Annotated[float, POSITIVE] = 1e-3
-    """Contrastive (CURL) learning rate of the encoder and W (CURL: 1e-3; 2e-4 for cheetah run)."""
-    alpha_lr: Annotated[float, POSITIVE] = 1e-4
-    """Temperature learning rate (CURL: 1e-4, Adam betas 0.5, 0.999)."""
+    actor_lr: Annotated[float, LEARNING_RATE] = 1e-3
+    """Actor learning rate (CURL: 1e-3; 2e-4 for cheetah run); at most 1 (:data:`LEARNING_RATE`)."""
+    critic_lr: Annotated[float, LEARNING_RATE] = 1e-3
+    """Critic (and encoder) learning rate (CURL: 1e-3; 2e-4 for cheetah run); at most 1 (:data:`LEARNING_RATE`)."""
+    encoder_lr: Annotated[float, LEARNING_RATE] = 1e-3
+    """Contrastive (CURL) learning rate of the encoder and W (CURL: 1e-3; 2e-4 for cheetah run); at most 1
+    (:data:`LEARNING_RATE`)."""
+    alpha_lr: Annotated[float, LEARNING_RATE] = 1e-4
+    """Temperature learning rate (CURL: 1e-4, Adam betas 0.5, 0.999); at most 1 (:data:`LEARNING_RATE`)."""
     init_temperature: Annotated[float, POSITIVE] = 0.1
     """Initial SAC temperature (CURL: 0.1); the target entropy is -|A|."""
     critic_tau: Annotated[float, Range(0, 1, low_open=True)] = 0.01
@@ -447,8 +458,9 @@ class DrqBcConfig:
     updates: Annotated[int, AT_LEAST_1] = 550_000
     """Gradient updates of a run: V-D4RL trains ``num_train_frames: 1100000`` steps with an update every
     ``update_every_steps: 2``."""
-    lr: Annotated[float, POSITIVE] = 3e-4
-    """Learning rate of encoder, actor and critic (``offline_dmc.yaml``: ``lr: 3e-4``)."""
+    lr: Annotated[float, LEARNING_RATE] = 3e-4
+    """Learning rate of encoder, actor and critic (``offline_dmc.yaml``: ``lr: 3e-4``); at most 1
+    (:data:`LEARNING_RATE`)."""
     discount: Annotated[float, Range(0, 1, low_open=True)] = 0.99
     """gamma (``discount: 0.99``)."""
     critic_tau: Annotated[float, Range(0, 1, low_open=True)] = 0.01
@@ -521,10 +533,10 @@ class LompoConfig:
     """Hidden layers of the deterministic actor (``ActorNetwork(..., 4, num_units)``)."""
     critic_layers: Annotated[int, MLP_LAYERS] = 3
     """Hidden layers of each of the two Q-functions (``DenseNetwork(1, 3, num_units)``)."""
-    actor_lr: Annotated[float, POSITIVE] = 3e-4
-    """Actor learning rate (``actor_lr: 3e-4``)."""
-    critic_lr: Annotated[float, POSITIVE] = 3e-4
-    """Q-functions' learning rate (``q_lr: 3e-4``)."""
+    actor_lr: Annotated[float, LEARNING_RATE] = 3e-4
+    """Actor learning rate (``actor_lr: 3e-4``); at most 1 (:data:`LEARNING_RATE`)."""
+    critic_lr: Annotated[float, LEARNING_RATE] = 3e-4
+    """Q-functions' learning rate (``q_lr: 3e-4``); at most 1 (:data:`LEARNING_RATE`)."""
     discount: Annotated[float, Range(0, 1, low_open=True)] = 0.99
     """gamma (``discount: 0.99``)."""
     tau: Annotated[float, Range(0, 1, low_open=True)] = 5e-3
@@ -811,6 +823,13 @@ def split_preset(name: str) -> tuple[str, str]:
             f" {', '.join(SETTINGS)} (e.g. cpu+later-dmc)"
         )
     return size, settings
+
+
+def canonical_preset(name: str) -> str:
+    """The one name of a preset: ``'tiny'``, ``'tiny+'`` and ``'tiny+table3'`` are ``'tiny'``; ``'cpu+later-dmc'``
+    stays. Raises ConfigError as :func:`split_preset` does."""
+    size, settings = split_preset(name)
+    return size if settings == "table3" else f"{size}+{settings}"
 
 
 def make_config(preset: str = "paper", overrides: Iterable[str] | Mapping[str, Any] = ()) -> Config:

@@ -88,9 +88,7 @@ def check_writable(folder: str | os.PathLike[str], option: str) -> None:
     try:
         with tempfile.TemporaryFile(dir=existing, prefix=".coworld-probe-"):
             pass
-    except OSError as err:
-        if err.errno not in WRITE_ERRNOS:
-            raise
+    except OSError as err:  # whatever the system's reason, the place takes no files (``/proc`` says ENOENT)
         reason = failure_reason(err)
         raise StorageError(f"cannot write to {folder} ({reason}); choose another {option}", reason) from None
 

@@ -229,3 +229,13 @@ def test_a_folder_as_dataset_file_is_refused_and_kept(processes: ModuleType, hel
         line = _one_error_line(processes, processes.run_cli(*args))
         assert f"{folder} is a folder" in line, line
         assert helpers.folder_state(tmp_path) == before
+
+
+def test_an_output_in_a_place_that_takes_no_files_is_one_line(tmp_path: Path) -> None:
+    """``/proc`` refuses new files with ENOENT, not a write errno: still one line naming the place and the option."""
+    from coworld.storage import check_writable
+
+    with pytest.raises(
+        StorageError, match=r"^cannot write to /proc \(No such file or directory\); choose another --out$"
+    ):
+        check_writable("/proc", "--out")

@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from coworld import envs
-from coworld.config import Config
+from coworld.config import Config, canonical_preset
 from coworld.errors import CoworldError
 
 START_OVER = "pass a new --logdir, or --force to start this one over"
@@ -96,5 +96,5 @@ class TrainJob:
             "source": self.source,
             "target": self.target,
             "dataset": str(self.dataset),
-            "preset": self.preset,
+            "preset": canonical_preset(self.preset),
         }

@@ -18,7 +18,7 @@ import h5py
 import numpy as np
 import torch
 
-from coworld.config import Config, first_difference, from_dict, split_preset, to_dict, to_json
+from coworld.config import Config, canonical_preset, first_difference, from_dict, split_preset, to_dict, to_json
 from coworld.devices import resolve_device
 from coworld.errors import ConfigError, CoworldError
 from coworld.storage import damaged, read_json_object, write_text_atomically
@@ -95,13 +95,17 @@ def check_run_dir(logdir: str | Path, config: Config, info: Mapping[str, Any], s
             )
         return False
     saved, saved_info = load_run(logdir, fix=f"nothing was changed: {start_over}")
+    presets = [_preset_name(d.get("preset")) for d in (saved_info, info)]
     if saved != config:
         diff = first_difference(to_dict(saved), to_dict(config))
+        made = f", made with --preset {presets[0]} (this command's: {presets[1]})" if presets[0] != presets[1] else ""
         raise CoworldError(
-            f"{logdir} holds a run with other settings ({diff}); rerun with the same settings to resume,"
+            f"{logdir} holds a run with other settings{made} ({diff}); rerun with the same settings to resume,"
             f" or {start_over}"
         )
     for key, value in info.items():
+        if key == "preset" and presets[0] == presets[1]:
+            continue  # one preset under two names ('tiny+' is 'tiny')
         if key in saved_info and saved_info[key] != value:
             raise CoworldError(
                 f"{logdir} holds a run with {key}={saved_info[key]!r}, not {value!r};"
@@ -109,6 +113,14 @@ def check_run_dir(logdir: str | Path, config: Config, info: Mapping[str, Any], s
             )
     check_source_replay(logdir, info, start_over)
     return True
+
+
+def _preset_name(name: Any) -> Any:
+    """A run description's preset by its one name (:func:`~coworld.config.canonical_preset`); anything else as it is."""
+    try:
+        return canonical_preset(name) if isinstance(name, str) else name
+    except CoworldError:
+        return name
 
 
 def check_source_replay(logdir: Path, info: Mapping[str, Any], start_over: str) -> None:

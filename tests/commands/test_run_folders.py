@@ -221,3 +221,20 @@ def test_a_refused_pickle_is_one_line_with_the_whole_reason(tmp_path, toy_datase
     assert done.returncode == 2 and "ran" not in done.stdout
     assert "unsupported GLOBAL posix.system whose module posix is blocked." in line, line
     assert "Weights only load failed" not in line
+
+
+def test_a_preset_named_two_ways_resumes_and_a_missing_preset_is_named(tmp_path) -> None:
+    """'tiny+' is 'tiny+table3' is 'tiny': one preset, so the folder resumes under any of its names; a run made with
+    another preset is refused with both presets named, not only the first setting that differs."""
+    from coworld.config import canonical_preset, make_config
+    from coworld.errors import CoworldError
+    from coworld.training.run import check_run_dir, prepare_run_dir
+
+    assert canonical_preset("tiny+") == canonical_preset("tiny+table3") == "tiny"
+    assert canonical_preset("cpu+later-dmc") == "cpu+later-dmc"
+    info = {"algo": "dreamerv2", "source": None, "target": TARGET, "dataset": "d.h5", "preset": "tiny+"}
+    prepare_run_dir(tmp_path / "run", make_config("tiny+"), info)
+    for name in ("tiny", "tiny+", "tiny+table3"):
+        assert check_run_dir(tmp_path / "run", make_config(name), {**info, "preset": name})
+    with pytest.raises(CoworldError, match=r"made with --preset tiny \(this command's: paper\)"):
+        check_run_dir(tmp_path / "run", make_config("paper"), {**info, "preset": "paper"})
