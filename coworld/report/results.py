@@ -4,7 +4,10 @@ A run folder is any folder holding a ``run.json`` with an ``algo`` and a ``targe
 writes), inside a sweep or not. Its final result is ``eval.json`` (written by ``coworld eval``); a run without one
 is listed with an empty return (still training, or never evaluated) and still has a learning curve. A sweep's
 runs also hold ``sweep-run.json`` with their variant name and pair; elsewhere the variant is read from the config
-(the CoWorld terms switched off) and the pair is the target alone for the baselines.
+(the CoWorld terms switched off) and the pair is the target alone for the baselines. Runs of one algorithm and
+variant that differ in their preset or config (anything but the seed) stay apart, each variant then naming what sets
+it apart (:mod:`coworld.report.arms`). An ``eval.json`` or a metrics record holding what is not a finite number is
+skipped and named (:func:`evaluation_damage`).
 """
 
 from __future__ import annotations
@@ -15,12 +18,13 @@ import json
 import math
 import os
 from collections.abc import Callable, Iterable, Mapping
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
 from coworld import envs
 from coworld.errors import CoworldError, UnknownTaskError
+from coworld.report.arms import ABLATION_SWITCHES, Settings, arm_variants, run_settings
 from coworld.report.paper import Published, published
 from coworld.text import count
 from coworld.training.description import run_description
@@ -29,8 +33,6 @@ from coworld.training.logger import read_metrics
 ONLINE_ALGO = "dreamerv2-online"
 """How a report names the online DreamerV2 agent that a ``coworld collect --policy dreamerv2`` run trained in the
 target task itself (its run folder sits beside the dataset): a reference row, not an offline method."""
-ABLATION_SWITCHES = (("align", "no-align"), ("reward_relabel", "no-relabel"), ("value_reg", "no-value-reg"))
-"""CoWorld config switch -> the variant name of the run with that term off."""
 
 
 @dataclass(frozen=True)
@@ -40,7 +42,8 @@ class RunResult:
     run_dir: str
     algo: str
     variant: str
-    """'' for the algorithm as configured; e.g. 'no-align' for CoWorld without Eq. 3."""
+    """'' for the algorithm as configured; e.g. 'no-align' for CoWorld without Eq. 3, 'zeta3' (a sweep's name),
+    'coworld.zeta=10' or 'zeta3, coworld.k=0.5' (what sets the run's arm apart: :mod:`coworld.report.arms`)."""
     source: str | None
     target: str
     seed: int
@@ -457,13 +460,20 @@ def _kind(value: Any) -> str:
 def load_result(run_dir: Path, qualities: dict[str, str | None] | None = None) -> RunResult:
     """The :class:`RunResult` of one run folder; a file of it that cannot be read is skipped and named in
     ``problems`` (a ``config.json`` leaves the whole run out: :class:`UnreadableRun`). ``qualities``: dataset path
-    -> quality, read once per dataset of a report."""
+    -> quality, read once per dataset of a report. Its variant is the run's name alone (:func:`load_results` adds
+    what tells it from the other runs of a report)."""
+    return _load(run_dir, qualities)[0]
+
+
+def _load(run_dir: Path, qualities: dict[str, str | None] | None) -> tuple[RunResult, Settings]:
+    """:func:`load_result`, and what made the run (:func:`coworld.report.arms.run_settings`)."""
     problems: list[str] = []
     info = run_description(_json_object(run_dir / "run.json", problems)) or {}
     algo, target = str(info["algo"]), str(info["target"])
     if info.get("online"):
         algo = ONLINE_ALGO  # the agent a `coworld collect --policy dreamerv2` trained in the target task itself
     config, seed = _config(run_dir)
+    settings = run_settings(config, info.get("preset"), run_dir / "config.json", problems)
     variant, pair_source = _variant(run_dir, algo, config, problems)
     source = info.get("source") if isinstance(info.get("source"), str) else None
     source = source or pair_source
@@ -487,7 +497,7 @@ def load_result(run_dir: Path, qualities: dict[str, str | None] | None = None) -
         capping = _mean(result.get("value_source"))
         predicted, arrived = _mean(result.get("reward_estimate")), _mean(result.get("reward_true"))
     records = _metrics(run_dir, problems)
-    return RunResult(
+    result = RunResult(
         run_dir=str(run_dir),
         algo=algo,
         variant=variant,
@@ -511,6 +521,7 @@ def load_result(run_dir: Path, qualities: dict[str, str | None] | None = None) -
         problems=tuple(problems),
         dataset_quality=None if info.get("online") else _cached_quality(info.get("dataset"), qualities),
     )
+    return result, settings
 
 
 def _cached_quality(path: Any, qualities: dict[str, str | None] | None) -> str | None:
@@ -522,21 +533,23 @@ def _cached_quality(path: Any, qualities: dict[str, str | None] | None) -> str |
 
 
 def load_results(root: str | Path, problems: list[str] | None = None) -> list[RunResult]:
-    """Every run under ``root``; raises CoworldError when there is none. Unreadable ``run.json`` files, and runs
-    whose ``config.json`` cannot be read, are skipped with a line in ``problems`` (each run's other files:
-    :attr:`RunResult.problems`)."""
+    """Every run under ``root``, each variant naming what tells its arm from the others (runs that differ in
+    anything but the seed are never one arm: :mod:`coworld.report.arms`); raises CoworldError when there is none.
+    Unreadable ``run.json`` files, and runs whose ``config.json`` cannot be read, are skipped with a line in
+    ``problems`` (each run's other files: :attr:`RunResult.problems`)."""
     problems = problems if problems is not None else []
     dirs = find_run_dirs(root, problems)
     if not dirs:
         raise CoworldError(f"no run folders (with a run.json) under {root}; run `coworld sweep` or `coworld train`")
     qualities: dict[str, str | None] = {}
-    results = []
+    loaded = []
     for run_dir in dirs:
         try:
-            results.append(load_result(run_dir, qualities))
+            loaded.append(_load(run_dir, qualities))
         except UnreadableRun as err:
             problems.append(str(err))
-    return results
+    variants = arm_variants([(result.algo, result.variant, settings) for result, settings in loaded])
+    return [replace(result, variant=variant) for (result, _), variant in zip(loaded, variants, strict=True)]
 
 
 def shown_path(path: str | Path, folder: str | Path) -> str:

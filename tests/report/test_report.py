@@ -429,8 +429,9 @@ def test_coworld_diagnostics_summarise_each_term_from_the_logs(tmp_path):
     on = make_run(tmp_path, "cw", algo="coworld", source="toy_reach", target="toy_reach_shifted", seed=3,
                   returns=[1.0], records=records, coworld={"zeta": 2.0})  # fmt: skip
     off = [{"step": 100, "target/coworld/align_kl": 1.0}]  # value regulariser and relabelling switched off
+    # cw-off has cw's settings (one arm of two seeds): runs that differ are two arms
     make_run(tmp_path, "cw-off", algo="coworld", source="toy_reach", target="toy_reach_shifted", seed=4,
-             returns=[1.0], records=off)  # fmt: skip
+             returns=[1.0], records=off, coworld={"zeta": 2.0})  # fmt: skip
     make_run(tmp_path, "dv", algo="dreamerv2", target="toy_reach_shifted", seed=0, returns=[1.0])
     kl = series(records, "target/coworld/align_kl")
     assert (kl.first, kl.last, kl.mean, kl.count) == (2.0, 0.5, 1.25, 2)
