@@ -110,6 +110,7 @@ def check_job(
             f"{path} is not complete (its collection was interrupted or is still running): training uses the"
             " episodes committed so far; finish it with `coworld collect ... --resume` for the whole dataset"
         )
+    warnings += longer_than_episodes(path, needed_steps(algo, config))
     run_dir = Path(logdir) if logdir is not None else default_logdir(algo, source, target, config.seed)
     job = TrainJob(algo, source if algo in NEEDS_SOURCE else None, target, path, run_dir, config, preset)
     if force:
@@ -250,6 +251,24 @@ def check_dataset(path: Path, task: str, action_size: int, needed: tuple[int, st
                 f" (`coworld collect ... --resume`) or lower {key} with --set"
             )
         return bool(data.complete)
+
+
+def longer_than_episodes(path: Path, needed: tuple[int, str] | None) -> list[str]:
+    """A warning when the model's sequences (``needed``: steps, key) are longer than every episode of the dataset:
+    then every sequence crosses into the next episode (the model starts afresh there), which is rarely meant."""
+    from coworld.data import open_dataset
+
+    if needed is None:
+        return []
+    with open_dataset(path) as data:
+        longest = int(data.lengths.max()) + 1 if data.num_episodes else 0
+    steps, key = needed
+    if longest == 0 or steps <= longest:
+        return []
+    return [
+        f"{key}={steps} is longer than every episode of {path} (at most {longest} steps with its final frame): every"
+        f" sequence crosses into the next episode; lower {key} to {longest} or less unless that is meant"
+    ]
 
 
 def run_job(job: TrainJob, *, progress: bool = True) -> dict[str, Any]:

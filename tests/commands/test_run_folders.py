@@ -238,3 +238,15 @@ def test_a_preset_named_two_ways_resumes_and_a_missing_preset_is_named(tmp_path)
         assert check_run_dir(tmp_path / "run", make_config(name), {**info, "preset": name})
     with pytest.raises(CoworldError, match=r"made with --preset tiny \(this command's: paper\)"):
         check_run_dir(tmp_path / "run", make_config("paper"), {**info, "preset": "paper"})
+
+
+def test_sequences_longer_than_every_episode_are_warned_of(toy_dataset) -> None:
+    from coworld.data import open_dataset
+    from coworld.training.train import longer_than_episodes
+
+    with open_dataset(toy_dataset) as data:
+        longest = int(data.lengths.max()) + 1
+    assert longer_than_episodes(toy_dataset, (longest, "train.seq_len")) == []
+    assert longer_than_episodes(toy_dataset, None) == []
+    [warning] = longer_than_episodes(toy_dataset, (longest + 1, "train.seq_len"))
+    assert f"train.seq_len={longest + 1} is longer than every episode" in warning and f"to {longest} or less" in warning
