@@ -610,7 +610,8 @@ def _run_ray(ray: Any, plan: Plan, execution: Execution, tracker: _Tracker) -> N
 
 
 def preview(spec: SweepSpec, root: str | Path, execution: Execution, *, data_dir: str | Path | None = None) -> str:
-    """What a sweep would do, one line per dataset to collect and per run, writing nothing (``--dry-run``)."""
+    """What a sweep would do, one line per dataset to collect and per run, writing nothing (``--dry-run``), and
+    what the runs still to do will cost (:func:`cost_lines`)."""
     dirs = SweepDirs.at(root, data_dir)
     if (dirs.root / SPEC_FILE).exists():
         merge_specs(load_spec(dirs.root), spec, dirs.root)
@@ -618,6 +619,7 @@ def preview(spec: SweepSpec, root: str | Path, execution: Execution, *, data_dir
     lines = [
         f"collect   {job.steps[0][job.steps[0].index('--out') + 1]}" for job in the_plan.jobs if job.kind == "collect"
     ]
+    hours = arm_hours(the_plan.runs, the_plan.finished, dirs)
     for run in the_plan.runs:
         if run.name in the_plan.finished:
             state = "finished"
@@ -625,5 +627,52 @@ def preview(spec: SweepSpec, root: str | Path, execution: Execution, *, data_dir
             state = "resume"
         else:
             state = "new"
-        lines.append(f"{state:9} {run.name}")
-    return "\n".join(lines)
+        cost = hours.get(_arm(run))
+        lines.append(f"{state:9} {run.name}" + (f"  (about {cost:.1f} h)" if cost and state != "finished" else ""))
+    return "\n".join([*lines, *cost_lines(the_plan, hours, execution)])
+
+
+def _arm(run: Run) -> tuple[str, str]:
+    return run.algo, run.variant
+
+
+def arm_hours(runs: list[Run], finished: list[str], dirs: SweepDirs) -> dict[tuple[str, str], float]:
+    """Training hours a run of each arm (algorithm, variant) took, the mean over the arm's finished runs in the
+    folder (``coworld report``'s ``wall_time_s``); an arm with none takes its algorithm's mean over other arms."""
+    from coworld.report.results import load_result
+
+    walls: dict[tuple[str, str], list[float]] = {}
+    for run in runs:
+        if run.name in finished:
+            wall = load_result(dirs.run_dir(run)).wall_time_s
+            if wall is not None:
+                walls.setdefault(_arm(run), []).append(wall / 3600)
+    hours = {arm: sum(w) / len(w) for arm, w in walls.items()}
+    for run in runs:
+        if _arm(run) not in hours:
+            same = [h for (algo, _), h in hours.items() if algo == run.algo]
+            if same:
+                hours[_arm(run)] = sum(same) / len(same)
+    return hours
+
+
+def cost_lines(the_plan: Plan, hours: dict[tuple[str, str], float], execution: Execution) -> list[str]:
+    """The estimate's closing lines: the runs to go, their training hours where an estimate exists, and the wall
+    clock at ``--jobs`` runs at once. The datasets to collect and the evaluations are not counted."""
+    todo = [run for run in the_plan.runs if run.name not in the_plan.finished]
+    if not todo:
+        return [f"all {len(the_plan.runs)} runs are finished"]
+    known = [hours[_arm(run)] for run in todo if _arm(run) in hours]
+    if not known:
+        return [
+            f"{len(todo)} runs to go; no finished run in this folder to estimate their cost from (docs/reproducing.md,"
+            " 'Cost', gives measured ones)"
+        ]
+    total = sum(known)
+    jobs = max(1, min(execution.jobs, len(todo)))
+    unknown = len(todo) - len(known)
+    rest = f"; {unknown} runs of algorithms with no finished run are not counted" if unknown else ""
+    return [
+        f"{len(todo)} runs to go: about {total:.1f} training hours, {total / jobs:.1f} h of wall clock at --jobs {jobs}"
+        f" (each arm's finished runs here; dataset collection and evaluations not counted{rest})"
+    ]

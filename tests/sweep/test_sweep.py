@@ -203,10 +203,45 @@ def test_dry_run_lists_the_work_and_writes_nothing(tmp_path):
         f"collect   {root / 'datasets' / 'toy_reach_shifted-random.h5'}",
         "new       curl-toy_reach_shifted-s0",
         "new       curl-toy_reach_shifted-s1",
+        "2 runs to go; no finished run in this folder to estimate their cost from (docs/reproducing.md, 'Cost', gives"
+        " measured ones)",
     ]
     assert not root.exists()
     out = CliRunner().invoke(main, ["sweep", "--table", "toy", "--dir", str(root), "--gpus-per-run", "0.5"])
     assert out.exit_code == 2 and "--gpus-per-run is a Ray resource request" in out.output and not root.exists()
+
+
+def test_dry_run_estimates_the_runs_to_go_from_the_finished_runs_of_their_arm(tmp_path):
+    """The committed cap study with two runs unfinished: each is estimated at its arm's mean training time over the
+    arm's finished runs (``wall_time_s``), and the total at --jobs runs at once."""
+    import shutil
+
+    from click.testing import CliRunner
+
+    from coworld.cli import main
+    from coworld.report.results import load_result
+
+    study = Path(__file__).parents[2] / "benchmarks" / "results" / "cap-study"
+    root = tmp_path / "study"
+    shutil.copytree(study, root)
+    for name in ("coworld-4x-cheetah_run-cheetah_uphill-s2", "dreamerv2-cheetah_uphill-s0"):
+        (root / "runs" / name / "eval.json").unlink()
+    hours = {
+        arm: sum(load_result(study / "runs" / f"{arm}-s{seed}").wall_time_s for seed in seeds) / len(seeds) / 3600
+        for arm, seeds in (("coworld-4x-cheetah_run-cheetah_uphill", (0, 1)), ("dreamerv2-cheetah_uphill", (1, 2)))
+    }
+    args = ["sweep", "--table", "cap-study", "--dir", str(root), "--data-dir", str(tmp_path / "d"), "--jobs", "2"]
+    out = CliRunner().invoke(main, [*args, "--dry-run"])
+    assert out.exit_code == 0, out.output
+    lines = out.output.splitlines()
+    coworld = hours["coworld-4x-cheetah_run-cheetah_uphill"]
+    assert f"new       coworld-4x-cheetah_run-cheetah_uphill-s2  (about {coworld:.1f} h)" in lines
+    assert f"new       dreamerv2-cheetah_uphill-s0  (about {hours['dreamerv2-cheetah_uphill']:.1f} h)" in lines
+    total = sum(hours.values())
+    assert lines[-1].startswith(
+        f"2 runs to go: about {total:.1f} training hours, {total / 2:.1f} h of wall clock at --jobs 2"
+    )
+    assert sum(line.startswith("finished ") for line in lines) == 31
 
 
 @pytest.mark.slow
