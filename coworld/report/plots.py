@@ -188,6 +188,13 @@ def _two_three_five(value: float, _position: int) -> str:
     return f"{value:g}" if round(value / 10 ** np.floor(np.log10(value))) in (2, 3, 5) else ""
 
 
+def _labelled_log_ticks(low: float, high: float) -> int:
+    """How many ticks a log axis from ``low`` to ``high`` would label (powers of ten, and 2, 3 and 5 times them: see
+    :func:`_two_three_five`); under two, a log axis tells no value, and a linear one is drawn instead."""
+    powers = range(int(np.floor(np.log10(low))), int(np.ceil(np.log10(high))) + 1)
+    return sum(low <= k * 10.0**p <= high for p in powers for k in (1, 2, 3, 5))
+
+
 def cap_curves(results: Sequence[RunResult], path: Path) -> bool:
     """Per target (subplot), each CoWorld label's target critic (solid) and the cap on it, the capping critic's value
     over the run's zeta (dashed), and the uncapped critics, offline DreamerV2's and those of CoWorld runs without the
@@ -228,13 +235,14 @@ def cap_curves(results: Sequence[RunResult], path: Path) -> bool:
             steps, mean, _ = mean_band([uncapped[r.run_dir] for r in offline if r.label == label])
             ax.plot(steps, mean, color=shade, label=f"{label}: critic, no cap", linewidth=1.2)
             values.extend(mean)
-        if min(values) > 0:  # values apart by a factor of zeta
+        ax.plot([], [], "--", color="0.45", label="dashed: the cap (capping critic / zeta)", linewidth=1.2)
+        if min(values) > 0 and _labelled_log_ticks(min(values), max(values)) >= 2:  # values apart by a factor of zeta
             ax.set_yscale("log")
             ax.yaxis.set_major_formatter("{x:g}")
             ax.yaxis.set_minor_formatter(_two_three_five)
             ax.tick_params(axis="y", which="minor", labelsize="x-small")
         ax.set_xlabel("target updates")
-        ax.set_title(f"{target} (dashed: the capping critic / zeta)", fontsize="small")
+        ax.set_title(target, fontsize="small")
         ax.grid(alpha=0.3, which="both")
         ax.legend(fontsize="x-small", loc="upper left", bbox_to_anchor=(1.0, 1.0))  # beside the lines, not on them
     axes[0].set_ylabel("value on imagined target states")

@@ -548,7 +548,8 @@ def test_the_figures_draw_the_variants_against_the_baselines_and_each_critic_und
     assert [round(bar.get_height(), 6) for bar in ablation.patches] == [20.0, 40.0, 30.0]
     (cap,) = drawn["cap.png"].axes
     lines = [(line.get_label(), line.get_linestyle(), list(line.get_ydata())) for line in cap.lines]
-    assert [(style, values) for _, style, values in lines] == [
+    assert lines[-1] == ("dashed: the cap (capping critic / zeta)", "--", [])  # the legend's key to the dashed lines
+    assert [(style, values) for _, style, values in lines[:-1]] == [
         ("-", [2.0, 4.0]), ("--", [30.0, 30.0]), ("-", [2.0, 4.0]), ("--", [3.0, 3.0]), ("-", [5.5, 9.5]),
         ("-", [6.0, 12.0]),
     ]  # fmt: skip
@@ -557,8 +558,9 @@ def test_the_figures_draw_the_variants_against_the_baselines_and_each_critic_und
         "coworld (zeta10): target critic",
         "dreamerv2: critic, no cap",
         "coworld (no-cap): critic, no cap",
+        "dashed: the cap (capping critic / zeta)",
     ]
-    assert cap.lines[-2].get_color() == "black" and cap.lines[-1].get_color() not in ("black", "white")
+    assert cap.lines[-3].get_color() == "black" and cap.lines[-2].get_color() not in ("black", "white")
     assert cap.get_yscale() == "log"
     assert cap.get_legend().get_window_extent().x0 >= cap.get_window_extent().x1  # beside the lines, not on them
 
@@ -574,6 +576,20 @@ def test_the_cap_figure_draws_no_two_critics_alike_past_ten_labels(tmp_path, dra
     critics = [line for line in cap.lines if line.get_linestyle() == "-"]
     assert len(critics) == 12 and len({(line.get_color(), line.get_marker()) for line in critics}) == 12
     assert {line.get_marker() for line in critics[:10]} == {"None"}  # ten labels draw as before, without markers
+
+
+def test_the_cap_figure_draws_a_linear_axis_where_a_log_one_would_label_under_two_ticks(tmp_path, drawn):
+    from coworld.report.plots import _labelled_log_ticks
+
+    assert [_labelled_log_ticks(*span) for span in ((1.1, 45.0), (33.0, 48.0), (12.0, 19.0))] == [6, 0, 0]
+    assert _labelled_log_ticks(2.0, 3.0) == 2
+    logs = [{"step": s, "target/coworld/target_value": v, "target/coworld/source_value": 48.0} for s, v in
+            ((100, 33.0), (200, 40.0))]  # fmt: skip
+    make_run(tmp_path, "cw", algo="coworld", source="toy_reach", target="toy_reach_shifted", seed=0, returns=[20.0],
+             records=logs, coworld={"zeta": 1.0})  # fmt: skip
+    write_report(tmp_path)
+    (cap,) = drawn["cap.png"].axes
+    assert cap.get_yscale() == "linear" and len([t for t in cap.get_yticks() if 33.0 <= t <= 48.0]) >= 2
 
 
 def test_a_log_axis_labels_its_minor_ticks_at_2_3_and_5_only():
