@@ -99,10 +99,11 @@ UNIT = Range(0, 1)
 PENALTY_WEIGHT = Range(0, 1e12)
 """A penalty's weight: the penalised losses are float32, where 1e300 is already infinite and trains to NaN; 1e12
 leaves every term in range while reaching far past any weight that keeps the loss's own part visible."""
-LEARNING_RATE = Range(0, 1, low_open=True)
-"""A learning rate: Adam moves each weight by about the learning rate per update, so above 1 a few updates leave
-weights no network starts from (a world model at 3 ends a tiny run with a finite loss of 2e32, at 1e30 every weight is
-NaN within updates); the methods here train at 1e-5 to 1e-3."""
+LEARNING_RATE = Range(0, 0.1, low_open=True)
+"""A learning rate, at most 0.1: every optimiser here is Adam, which moves each weight by about the learning rate per
+update, and the methods train at 1e-5 to 1e-3. Above it a run blows up and may still end "done": the tiny preset's
+offline DreamerV2 ends its 40 updates with a world-model loss of 2e25 at a world-model rate of 1 (2e32 at 3; NaN
+within updates at 1e30), of 1.6e3 at 0.1 (35 at its own 6e-4)."""
 COWORLD_WEIGHT = Range(0, 1e3)
 """A weight of CoWorld's terms (beta2, alpha): at 1e3 the term already outweighs the loss it is added to by orders of
 magnitude (the papers use 0.2 to 2); above it the target agent learns the term alone, and near float32's limit its
@@ -174,7 +175,7 @@ class WorldModelConfig:
     unimix: Annotated[float, Range(0, 1, high_open=True)] = 0.0
     """Uniform mixture on the categorical latents (0 = DreamerV2; 0.01 = DreamerV3's)."""
     lr: Annotated[float, LEARNING_RATE] = 2e-4
-    """World-model learning rate (Table 3); at most 1 (:data:`LEARNING_RATE`)."""
+    """World-model learning rate (Table 3); at most 0.1 (:data:`LEARNING_RATE`)."""
     eps: Annotated[float, POSITIVE] = 1e-5
     """Adam epsilon."""
     weight_decay: Annotated[float, Range(0, 1, high_open=True)] = 1e-6
@@ -205,9 +206,9 @@ class ActorCriticConfig:
     lambda_: Annotated[float, UNIT] = 0.95
     """lambda of the lambda-return (Table 3)."""
     actor_lr: Annotated[float, LEARNING_RATE] = 4e-5
-    """Actor learning rate (Table 3); at most 1 (:data:`LEARNING_RATE`)."""
+    """Actor learning rate (Table 3); at most 0.1 (:data:`LEARNING_RATE`)."""
     critic_lr: Annotated[float, LEARNING_RATE] = 1e-4
-    """Critic learning rate (Table 3); at most 1 (:data:`LEARNING_RATE`)."""
+    """Critic learning rate (Table 3); at most 0.1 (:data:`LEARNING_RATE`)."""
     actor_entropy: Annotated[float, NON_NEGATIVE] = 1e-4
     """Entropy regularisation weight of the actor."""
     actor_grad: Annotated[str, OneOf(("dynamics", "reinforce"))] = "dynamics"
@@ -350,9 +351,9 @@ class CoWorldConfig:
     alpha: Annotated[float, COWORLD_WEIGHT] = 0.2
     """Weight of the value regulariser (Table 3); at most 1e3 (:data:`COWORLD_WEIGHT`)."""
     zeta: Annotated[float, Range(0, 1e3, low_open=True)] = 1.0
-    """Rescales target values against source values in Eq. 6 (the papers: 1; the cap studies: up to 10); at most 1e3,
-    where the term binds nowhere a return could reach (``v_T <= v_S / zeta``) and the 'shift' form's ``alpha * zeta``
-    is already far past any return."""
+    """Rescales target values against source values in Eq. 6 (the papers: 1; the cap studies: up to 10); at most 1e3:
+    the 'shift' form moves a binding state's value ``alpha * zeta`` below its return, which far above it is past any
+    return and, squared in the critic's float32 loss, overflows to inf (1e30)."""
     cap_form: Annotated[str, OneOf(("shift", "on_mean"))] = "shift"
     """How Eq. 6's max-min term reaches the target critic: 'shift' (a binding state's fixed point ``alpha * zeta``
     below its lambda-return on every critic: the paper's term on a Gaussian critic, the two-hot critic's target
@@ -401,14 +402,14 @@ class CurlConfig:
     discount: Annotated[float, Range(0, 1, low_open=True)] = 0.99
     """gamma."""
     actor_lr: Annotated[float, LEARNING_RATE] = 1e-3
-    """Actor learning rate (CURL: 1e-3; 2e-4 for cheetah run); at most 1 (:data:`LEARNING_RATE`)."""
+    """Actor learning rate (CURL: 1e-3; 2e-4 for cheetah run); at most 0.1 (:data:`LEARNING_RATE`)."""
     critic_lr: Annotated[float, LEARNING_RATE] = 1e-3
-    """Critic (and encoder) learning rate (CURL: 1e-3; 2e-4 for cheetah run); at most 1 (:data:`LEARNING_RATE`)."""
+    """Critic (and encoder) learning rate (CURL: 1e-3; 2e-4 for cheetah run); at most 0.1 (:data:`LEARNING_RATE`)."""
     encoder_lr: Annotated[float, LEARNING_RATE] = 1e-3
-    """Contrastive (CURL) learning rate of the encoder and W (CURL: 1e-3; 2e-4 for cheetah run); at most 1
+    """Contrastive (CURL) learning rate of the encoder and W (CURL: 1e-3; 2e-4 for cheetah run); at most 0.1
     (:data:`LEARNING_RATE`)."""
     alpha_lr: Annotated[float, LEARNING_RATE] = 1e-4
-    """Temperature learning rate (CURL: 1e-4, Adam betas 0.5, 0.999); at most 1 (:data:`LEARNING_RATE`)."""
+    """Temperature learning rate (CURL: 1e-4, Adam betas 0.5, 0.999); at most 0.1 (:data:`LEARNING_RATE`)."""
     init_temperature: Annotated[float, POSITIVE] = 0.1
     """Initial SAC temperature (CURL: 0.1); the target entropy is -|A|."""
     critic_tau: Annotated[float, Range(0, 1, low_open=True)] = 0.01
@@ -459,7 +460,7 @@ class DrqBcConfig:
     """Gradient updates of a run: V-D4RL trains ``num_train_frames: 1100000`` steps with an update every
     ``update_every_steps: 2``."""
     lr: Annotated[float, LEARNING_RATE] = 3e-4
-    """Learning rate of encoder, actor and critic (``offline_dmc.yaml``: ``lr: 3e-4``); at most 1
+    """Learning rate of encoder, actor and critic (``offline_dmc.yaml``: ``lr: 3e-4``); at most 0.1
     (:data:`LEARNING_RATE`)."""
     discount: Annotated[float, Range(0, 1, low_open=True)] = 0.99
     """gamma (``discount: 0.99``)."""
@@ -534,9 +535,9 @@ class LompoConfig:
     critic_layers: Annotated[int, MLP_LAYERS] = 3
     """Hidden layers of each of the two Q-functions (``DenseNetwork(1, 3, num_units)``)."""
     actor_lr: Annotated[float, LEARNING_RATE] = 3e-4
-    """Actor learning rate (``actor_lr: 3e-4``); at most 1 (:data:`LEARNING_RATE`)."""
+    """Actor learning rate (``actor_lr: 3e-4``); at most 0.1 (:data:`LEARNING_RATE`)."""
     critic_lr: Annotated[float, LEARNING_RATE] = 3e-4
-    """Q-functions' learning rate (``q_lr: 3e-4``); at most 1 (:data:`LEARNING_RATE`)."""
+    """Q-functions' learning rate (``q_lr: 3e-4``); at most 0.1 (:data:`LEARNING_RATE`)."""
     discount: Annotated[float, Range(0, 1, low_open=True)] = 0.99
     """gamma (``discount: 0.99``)."""
     tau: Annotated[float, Range(0, 1, low_open=True)] = 5e-3

@@ -2,7 +2,7 @@ import dataclasses
 
 import pytest
 
-from coworld.config import Config, config_keys, from_dict, make_config, to_dict
+from coworld.config import PRESETS, SETTINGS, Config, config_keys, from_dict, make_config, to_dict
 from coworld.errors import ConfigError
 
 
@@ -93,14 +93,14 @@ def test_every_field_is_documented():
     "item, message",
     [  # the values a hostile user tried: each is refused when the config is built, with key, value and range
         ("coworld.k=2", "config key coworld.k=2.0 is out of range: it must be in [0, 1]"),
-        ("world_model.lr=-1", "config key world_model.lr=-1.0 is out of range: it must be > 0"),
+        ("world_model.lr=-1", "config key world_model.lr=-1.0 is out of range: it must be in (0, 0.1]"),
         ("actor_critic.discount=nan", "config key actor_critic.discount=nan is out of range: it must be in (0, 1]"),
         ("curl.batch_size=0", "config key curl.batch_size=0 is out of range: it must be >= 1"),
         ("coworld.iterations=0", "config key coworld.iterations=0 is out of range: it must be >= 1"),
         ("world_model.stoch=0", "config key world_model.stoch=0 is out of range: it must be >= 1"),
         ("precision=fp8", "config key precision='fp8' is out of range: it must be one of auto, bf16, fp32"),
         ("seed=-1", "config key seed=-1 is out of range: it must be in [0, 4294967295]"),
-        ("world_model.lr=inf", "config key world_model.lr=inf is out of range: it must be > 0"),
+        ("world_model.lr=inf", "config key world_model.lr=inf is out of range: it must be in (0, 0.1]"),
         ("device=tpu", "it must be one of auto, cpu, cuda or cuda:N"),
         ("actor_critic.horizon=1", "it must be >= 2"),
         ("curl.crop=80", "curl.crop=80 is larger than the padded frame"),
@@ -116,6 +116,19 @@ def test_every_field_is_documented():
         ("ewc.weight=1e300", "ewc.weight=1e+300 is out of range: it must be in [0, 1000000000000]"),
         ("lompo.weight=1e300", "lompo.weight=1e+300 is out of range: it must be in [0, 1000000000000]"),
         ("penalty.weight=1e300", "penalty.weight=1e+300 is out of range: it must be in [0, 1000000000000]"),
+        # learning rates and CoWorld's weights that blow a run up: to NaN within updates (1e30), or to a finite
+        # world-model loss of 2e32 (lr 3) or 2e25 (lr 1) that ends "done"
+        ("world_model.lr=1", "world_model.lr=1.0 is out of range: it must be in (0, 0.1]"),
+        ("world_model.lr=1e30", "world_model.lr=1e+30 is out of range: it must be in (0, 0.1]"),
+        ("world_model.lr=3", "world_model.lr=3.0 is out of range: it must be in (0, 0.1]"),
+        ("actor_critic.actor_lr=1e30", "actor_critic.actor_lr=1e+30 is out of range: it must be in (0, 0.1]"),
+        ("actor_critic.critic_lr=1e30", "actor_critic.critic_lr=1e+30 is out of range: it must be in (0, 0.1]"),
+        ("curl.encoder_lr=2", "curl.encoder_lr=2.0 is out of range: it must be in (0, 0.1]"),
+        ("drqbc.lr=2", "drqbc.lr=2.0 is out of range: it must be in (0, 0.1]"),
+        ("lompo.critic_lr=2", "lompo.critic_lr=2.0 is out of range: it must be in (0, 0.1]"),
+        ("coworld.zeta=1e30", "coworld.zeta=1e+30 is out of range: it must be in (0, 1000]"),
+        ("coworld.alpha=1e308", "coworld.alpha=1e+308 is out of range: it must be in [0, 1000]"),
+        ("coworld.beta2=1e30", "coworld.beta2=1e+30 is out of range: it must be in [0, 1000]"),
     ],
 )
 def test_values_out_of_range_are_refused_in_one_line(item, message):
@@ -137,8 +150,9 @@ def test_every_non_boolean_field_has_a_range_and_the_presets_satisfy_them():
                 yield prefix + f.name
 
     assert list(unchecked(Config())) == []
-    for preset in ("paper", "tiny"):
-        make_config(preset)  # raises if a preset breaks a range
+    for preset in PRESETS:
+        for settings in SETTINGS:
+            make_config(f"{preset}+{settings}")  # raises if a preset or a settings group breaks a range
     assert make_config("tiny", ["device=cuda:1"]).device == "cuda:1"
 
 
