@@ -49,4 +49,14 @@ class StorageError(CoworldError):
 
 
 class TrainingDiverged(CoworldError):
-    """A loss stopped being a number: the run stops rather than train on (its last checkpoint stays as it was)."""
+    """A loss, an action or a weight stopped being a number: the run stops rather than train on, naming the phase,
+    what to lower and the last good checkpoint, which stays as it was (:mod:`coworld.training.divergence`)."""
+
+
+class NonFiniteCheckpoint(TrainingDiverged):
+    """A checkpoint refused because ``entry`` (a path into its state, ``agent/world_model/...``) holds ``value``
+    (``nan``, ``inf`` or ``-inf``); the checkpoint at ``path`` is as it was."""
+
+    def __init__(self, message: str, *, path: str, entry: str, value: str) -> None:
+        super().__init__(message)
+        self.path, self.entry, self.value = path, entry, value

@@ -82,6 +82,7 @@ def train_offline(job: TrainJob, *, device: torch.device, resumed: bool, progres
             workers=config.train.envs,
             prefetch=config.train.prefetch,
             prepare=getattr(agent, "prepare", None),
+            phase="offline training" if job.source is None else "target phase",
         )
         restored = resumed and trainer.restore()
         if job.source is not None and not restored:

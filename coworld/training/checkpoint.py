@@ -4,12 +4,14 @@ A checkpoint is a dict of tensors, numbers, strings, lists, tuples and dicts wri
 temporary file in the same folder, flushed to disk and renamed over the old one, so a kill at any moment
 leaves either the previous checkpoint or the new one, never half of one. A write the system refuses (a full disk)
 raises :class:`~coworld.errors.StorageError` with one line, removes the temporary file and leaves the previous
-checkpoint as it was. Loading uses ``torch.load(weights_only=True)``: a checkpoint from an untrusted source cannot
-run code.
+checkpoint as it was. A state holding a NaN or infinite float tensor is refused before anything is written
+(:class:`~coworld.errors.NonFiniteCheckpoint`): a diverged run never replaces its last good checkpoint. Loading uses
+``torch.load(weights_only=True)``: a checkpoint from an untrusted source cannot run code.
 """
 
 from __future__ import annotations
 
+import math
 import os
 import random
 import warnings
@@ -21,15 +23,26 @@ import numpy as np
 import torch
 
 from coworld.config import to_dict
-from coworld.errors import CheckpointError, StorageError
+from coworld.errors import CheckpointError, NonFiniteCheckpoint, StorageError
 from coworld.storage import WRITE_ERRNOS, failure_errno, failure_reason
 
 CHECKPOINT_NAME = "checkpoint.pt"
 
 
 def save_checkpoint(path: str | os.PathLike[str], state: dict[str, Any]) -> None:
-    """Write ``state`` to ``path`` atomically (write to a temporary file, fsync, rename)."""
+    """Write ``state`` to ``path`` atomically (write to a temporary file, fsync, rename); a state with a non-finite
+    float tensor is refused first (:class:`~coworld.errors.NonFiniteCheckpoint`), leaving ``path`` as it was."""
     path = Path(path)
+    damaged = first_non_finite(state)
+    if damaged is not None:
+        entry, value = damaged
+        kept = f"the previous checkpoint {path} is kept as it was" if path.exists() else "no earlier checkpoint exists"
+        raise NonFiniteCheckpoint(
+            f"refusing to write checkpoint {path}: {entry} holds {value} values; {kept}",
+            path=str(path),
+            entry=entry,
+            value=value,
+        )
     tmp = path.with_name(f".{path.name}.tmp")
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -52,6 +65,28 @@ def save_checkpoint(path: str | os.PathLike[str], state: dict[str, Any]) -> None
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
+
+
+def first_non_finite(state: Any, prefix: str = "") -> tuple[str, str] | None:
+    """The first float tensor of ``state`` (dicts, lists and tuples walked in order) holding a NaN or an infinity, as
+    ``(entry, value)``: its path (``agent/world_model/encoder.net.0.weight``) and ``nan``, ``inf`` or ``-inf``; None
+    where every one is finite. It reads the tensors and changes nothing."""
+    if isinstance(state, torch.Tensor):
+        if not (state.is_floating_point() or state.is_complex()) or bool(torch.isfinite(state).all()):
+            return None
+        value = "nan" if bool(torch.isnan(state).any()) else "inf" if bool((state == math.inf).any()) else "-inf"
+        return prefix, value
+    if isinstance(state, dict):
+        items: Any = state.items()
+    elif isinstance(state, list | tuple):
+        items = enumerate(state)
+    else:
+        return None
+    for key, value in items:
+        found = first_non_finite(value, f"{prefix}/{key}" if prefix else str(key))
+        if found is not None:
+            return found
+    return None
 
 
 class _Recording:

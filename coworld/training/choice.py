@@ -50,9 +50,10 @@ from coworld.errors import CheckpointError
 from coworld.losses.coworld import closest_source, domain_distance
 from coworld.storage import write_text_atomically
 from coworld.training.checkpoint import load_checkpoint, rng_state, save_checkpoint, set_rng_state
+from coworld.training.divergence import Phase
 from coworld.training.job import parse_sources
 from coworld.training.logger import Logger
-from coworld.training.online import pretrain_source
+from coworld.training.online import pretrain_source, source_phase
 from coworld.training.run import seed_everything
 from coworld.training.source_choice import (
     CHOICE_FILE,
@@ -168,22 +169,33 @@ def _warm_up(job: Any, dataset: Any, device: torch.device, path: Path) -> None:
     config: Config = job.config
     target = DreamerV2(config=config, action_size=task_spec(job.target).action_size, device=device)
     sampler = iter(dataset.sampler(config.train.batch_size, config.train.seq_len, seed=config.seed + WARMUP_SEED))
+    phase = Phase(
+        name="the target model's warm-up before the source choice",
+        agent="the target agent",
+        unit="warm-up update",
+        kind="coworld",
+        config=config,
+        resume_from=path,
+    )
     with Logger(path.parent) as logger:
         for i in range(config.coworld.source_updates):
             interrupt.check()
             metrics, _ = target.train_world_model(target.prepare(next(sampler)))
+            named = {f"target/{k}": v for k, v in metrics.items()}
+            phase.check(named, i + 1)
             if (i + 1) % max(1, config.train.log_every) == 0 or i + 1 == config.coworld.source_updates:
-                logger.log({f"target/{k}": v for k, v in metrics.items()}, i + 1, unit="warmup_update")
-    save_checkpoint(
-        path,
-        {
-            "kind": WARMUP_KIND,
-            "task": job.target,
-            "config": to_dict(config),
-            "agent": target.state_dict(),
-            "rng": rng_state(),
-        },
-    )
+                logger.log(named, i + 1, unit="warmup_update")
+    with phase.saving(config.coworld.source_updates):
+        save_checkpoint(
+            path,
+            {
+                "kind": WARMUP_KIND,
+                "task": job.target,
+                "config": to_dict(config),
+                "agent": target.state_dict(),
+                "rng": rng_state(),
+            },
+        )
 
 
 def _pretrain(job: Any, name: str, device: torch.device, progress: bool) -> CoWorld:
@@ -198,6 +210,13 @@ def _pretrain(job: Any, name: str, device: torch.device, progress: bool) -> CoWo
     )
     folder = candidate_dir(job.logdir, name)
     folder.mkdir(parents=True, exist_ok=True)
+    phase = source_phase(
+        f"source pretraining of candidate {name}",
+        agent="the source agent",
+        kind="coworld-source",
+        config=config,
+        logdir=folder,
+    )
     with Logger(folder) as logger:
         pretrain_source(
             SourceLearner(candidate),
@@ -206,6 +225,7 @@ def _pretrain(job: Any, name: str, device: torch.device, progress: bool) -> CoWo
             logdir=folder,
             logger=logger,
             algorithm="coworld",
+            phase=phase,
             progress=progress,
             cut_episodes=False,
         )

@@ -43,10 +43,11 @@ from coworld.progress import progress_bar
 from coworld.training import pretrained
 from coworld.training.checkpoint import CHECKPOINT_NAME, load_checkpoint, rng_state, save_checkpoint, set_rng_state
 from coworld.training.choice import restore_warm_target, settle_source
+from coworld.training.divergence import Phase
 from coworld.training.evaluate import evaluate
 from coworld.training.job import TrainJob
-from coworld.training.logger import Logger, Rate, check_finite
-from coworld.training.online import make_source_trainer, source_replay_writer
+from coworld.training.logger import Logger, Rate
+from coworld.training.online import make_source_trainer, source_phase, source_replay_writer
 from coworld.training.openloop import log_open_loop
 
 CHECKPOINT_KIND = "coworld"
@@ -111,6 +112,9 @@ class Algorithm1:
             device=device,
         )
         learner, source = SourceLearner(self.agent), str(job.source)
+        self.pretraining = source_phase(
+            "source pretraining", agent="the source agent", kind="coworld-source", config=self.config, logdir=job.logdir
+        )
         self.source = make_source_trainer(
             learner,
             source,
@@ -118,6 +122,7 @@ class Algorithm1:
             logdir=job.logdir,
             writer=writer,
             logger=logger,
+            phase=self.pretraining,
             checkpoint_extra=self.policy_value_state,
         )
         self.state = Progress()
@@ -138,12 +143,15 @@ class Algorithm1:
             if self.state.phase == "target":  # lines 5-12
                 self.target_phase()
                 self.state.phase = "source"
-                self.save()
+                with self.target_phase_check().saving(self.agent.target.updates):
+                    self.save()
             self.source_phase()  # lines 14-22
             if (self.state.iteration + 1) % cfg.eval_every == 0 or self.state.iteration + 1 == cfg.iterations:
                 self.evaluate()
+            source = self.source.phase
             self.state = Progress(iteration=self.state.iteration + 1, phase="target", last_eval=self.state.last_eval)
-            self.save()
+            with source.saving(self.source.updates):
+                self.save()
         self.bar.close()
         return {
             "logdir": str(self.job.logdir),
@@ -159,9 +167,10 @@ class Algorithm1:
         self.source.run(max_steps=self.cfg.pretrain_steps, progress=self.show_progress, cut_episodes=False)
         self.state.phase = "target"
         state = self.checkpoint()
-        if self.job.keep_pretrained:
-            pretrained.keep(Path(self.job.logdir), state)
-        save_checkpoint(self.checkpoint_path, state)
+        with self.pretraining.saving(self.source.updates):
+            if self.job.keep_pretrained:
+                pretrained.keep(Path(self.job.logdir), state)
+            save_checkpoint(self.checkpoint_path, state)
 
     def begin_iteration(self) -> None:
         """The iteration's stream of target batches, laid out for the world models (the target phase's own with the
@@ -181,10 +190,11 @@ class Algorithm1:
         k1 = self.cfg.target_updates
         log_every = max(1, min(self.config.train.log_every, k1))
         rate = Rate(self.agent.target.updates)
+        phase = self.target_phase_check()
         for i in range(k1):
             interrupt.check()
             metrics = self.agent.train_target(next(self.agent.target_batches))
-            check_finite(metrics, self.agent.target.updates, "target update")
+            phase.check(metrics, self.agent.target.updates)
             self.bar.update(1)
             if (i + 1) % log_every == 0 or i + 1 == k1:
                 metrics["target/perf/updates_per_s"] = rate(self.agent.target.updates)
@@ -195,6 +205,9 @@ class Algorithm1:
         running source episodes carry on into the next phase."""
         goal = self.source.updates + self.cfg.source_updates
         counted = self.source.updates
+        # a rerun of a stopped source phase starts from the combined checkpoint written at the phase's start
+        name = f"source phase of iteration {self.state.iteration + 1}"
+        self.source.phase = dataclasses.replace(self.pretraining, name=name, resume_from=self.checkpoint_path)
 
         def pause(trainer: Any) -> bool:
             nonlocal counted
@@ -216,6 +229,18 @@ class Algorithm1:
         step = self.agent.target.updates
         self.logger.log(result.metrics(), step, unit="target_update")
         log_open_loop(self.logger, self.agent, self.dataset, step, tag=f"openl/{target}", unit="target_update")
+
+    def target_phase_check(self) -> Phase:
+        """The running iteration's target phase, as :mod:`coworld.training.divergence` checks it: a rerun starts from
+        the combined checkpoint written at its start."""
+        return Phase(
+            name=f"target phase of iteration {self.state.iteration + 1}",
+            agent="the target agent",
+            unit="target update",
+            kind="coworld",
+            config=self.config,
+            resume_from=self.checkpoint_path,
+        )
 
     # -- checkpoints ----------------------------------------------------------------------------------------------
     def save(self) -> None:

@@ -24,7 +24,7 @@ from coworld.agents.dreamerv2 import DreamerV2
 from coworld.agents.dreamerv2_ewc import EwcDreamerV2
 from coworld.data import open_dataset
 from coworld.training.logger import Logger
-from coworld.training.online import pretrain_source
+from coworld.training.online import pretrain_source, source_phase
 
 __all__ = ["consolidate_on_source", "pretrain_on_source"]
 
@@ -34,8 +34,16 @@ def pretrain_on_source(agent: DreamerV2, job: Any, *, logger: Logger, progress: 
 
     Returns the source environment steps taken.
     """
+    phase = source_phase("source phase", agent="the agent", kind=job.algo, config=job.config, logdir=job.logdir)
     return pretrain_source(
-        agent, job.source, config=job.config, logdir=job.logdir, logger=logger, algorithm=job.algo, progress=progress
+        agent,
+        job.source,
+        config=job.config,
+        logdir=job.logdir,
+        logger=logger,
+        algorithm=job.algo,
+        phase=phase,
+        progress=progress,
     )
 
 

@@ -19,8 +19,6 @@ from typing import Any
 
 import tqdm
 
-from coworld.errors import TrainingDiverged
-
 OUTPUTS = ("console", "jsonl", "tensorboard")
 
 CONSOLE_KEYS = ("eval/", "/loss", "perf/", "coworld/")
@@ -158,15 +156,3 @@ class Rate:
         rate = (count - self._count) / max(now - self._time, 1e-9)
         self._count, self._time = count, now
         return rate
-
-
-def check_finite(metrics: Mapping[str, float], step: int, unit: str = "update") -> None:
-    """Stop a run whose losses are no longer numbers: one :class:`~coworld.errors.TrainingDiverged` line naming the
-    loss, before a checkpoint could keep the damaged weights."""
-    bad = next((key for key, value in metrics.items() if key.endswith("loss") and not math.isfinite(value)), None)
-    if bad is not None:
-        raise TrainingDiverged(
-            f"{bad} is {metrics[bad]} at {unit} {step}: the run diverged, and its last checkpoint is kept; lower the"
-            " learning rates or the weights of the added losses (e.g. --set ewc.weight=..., lompo.weight=...,"
-            " penalty.weight=...) and start it over with --force"
-        )

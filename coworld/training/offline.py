@@ -21,8 +21,9 @@ from coworld import interrupt
 from coworld.data.prefetch import prefetched, stop_prefetch
 from coworld.progress import progress_bar
 from coworld.training.checkpoint import CHECKPOINT_NAME, read_run_checkpoint, restore_agent, run_state, save_checkpoint
+from coworld.training.divergence import Phase
 from coworld.training.evaluate import evaluate
-from coworld.training.logger import Logger, Rate, check_finite
+from coworld.training.logger import Logger, Rate
 from coworld.training.openloop import log_open_loop
 
 CHECKPOINT_KEYS = ("agent", "updates", "last_eval", "rng")
@@ -59,6 +60,8 @@ class OfflineTrainer:
         prefetch: make each next batch on a background thread while the agent trains on the current one.
         prepare: what the background thread also does to each batch (the agent's ``prepare``: work that reads no
             weight); ``agent.train`` must take its output.
+        phase: what its divergence line calls the run (:mod:`coworld.training.divergence`), e.g. ``target phase``
+            for a fine-tuned DreamerV2 after its source phase.
     """
 
     def __init__(
@@ -76,6 +79,7 @@ class OfflineTrainer:
         workers: int = 1,
         prefetch: bool = False,
         prepare: Callable[[dict[str, np.ndarray]], Any] | None = None,
+        phase: str = "offline training",
     ) -> None:
         self.agent, self.kind, self.task, self.config = agent, kind, task, config
         self.schedule = schedule
@@ -88,6 +92,9 @@ class OfflineTrainer:
         self.prepare = prepare
         self.updates = 0
         self.last_eval: float | None = None
+        self.phase = Phase(
+            name=phase, agent="the agent", unit="update", kind=kind, config=config, resume_from=self.checkpoint_path
+        )
 
     @property
     def checkpoint_path(self) -> Path:
@@ -105,7 +112,8 @@ class OfflineTrainer:
 
     def save(self) -> None:
         state = run_state(self.kind, self.task, self.config, self.agent)
-        save_checkpoint(self.checkpoint_path, {**state, "updates": self.updates, "last_eval": self.last_eval})
+        with self.phase.saving(self.updates):
+            save_checkpoint(self.checkpoint_path, {**state, "updates": self.updates, "last_eval": self.last_eval})
 
     def run(self, *, progress: bool = True) -> OfflineResult:
         s = self.schedule
@@ -118,7 +126,7 @@ class OfflineTrainer:
                 interrupt.check()
                 metrics = self.agent.train(next(sampler))
                 self.updates += 1
-                check_finite(metrics, self.updates)
+                self.phase.check(metrics, self.updates)
                 bar.update(1)
                 if self.updates % s.log_every == 0 or self.updates == s.updates:
                     metrics["perf/updates_per_s"] = update_rate(self.updates)  # this log window, evaluation included

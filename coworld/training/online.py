@@ -56,6 +56,7 @@ from coworld.config import Config
 from coworld.data import DatasetWriter, open_dataset
 from coworld.progress import progress_bar
 from coworld.training.checkpoint import CHECKPOINT_NAME, read_run_checkpoint, restore_agent, run_state, save_checkpoint
+from coworld.training.divergence import Phase
 from coworld.training.evaluate import evaluate
 from coworld.training.logger import Logger, Rate
 from coworld.training.openloop import log_open_loop
@@ -174,6 +175,8 @@ class OnlineTrainer:
         logger: where metrics go.
         checkpoint_extra: callable returning more entries to save in the checkpoint (CoWorld's target-policy critic,
             which learns beside the source agent while it pretrains).
+        phase: what the trainer's updates, actions and checkpoints are checked as (:mod:`coworld.training.divergence`;
+            a two-phase run names each of its phases by setting :attr:`phase`); None: collection.
     """
 
     def __init__(
@@ -188,6 +191,7 @@ class OnlineTrainer:
         checkpoint_extra: Callable[[], dict[str, Any]] | None = None,
         metric_prefix: str = "",
         step_unit_prefix: str = "",
+        phase: Phase | None = None,
     ) -> None:
         self.agent, self.task, self.config = agent, task, config
         self.logdir = Path(logdir)
@@ -196,6 +200,15 @@ class OnlineTrainer:
         self.prefix = metric_prefix
         self.step_unit = f"{step_unit_prefix}env_step"
         """What the step of this trainer's log records counts (``env_step``, ``source_env_step``)."""
+        self.phase = phase or Phase(
+            name="collection",
+            agent="the agent",
+            unit="update",
+            kind=CHECKPOINT_KIND,
+            config=config,
+            resume_from=self.logdir / CHECKPOINT_NAME,
+        )
+        """The phase the trainer runs in, for :mod:`coworld.training.divergence`'s checks."""
         self.spec = envs.task_spec(task)
         self.replay = Replay(seed=config.seed)
         self.steps = writer.num_steps
@@ -314,7 +327,8 @@ class OnlineTrainer:
         state = {**run_state(CHECKPOINT_KIND, self.task, self.config, self.agent), **online}
         if self.checkpoint_extra is not None:
             state.update(self.checkpoint_extra())
-        save_checkpoint(self.checkpoint_path, state)
+        with self.phase.saving(self.updates):
+            save_checkpoint(self.checkpoint_path, state)
 
     # -- the loop --------------------------------------------------------------------------------------------------
     def run(
@@ -382,6 +396,7 @@ class OnlineTrainer:
                     generator=self.act_rng if self.background else None,
                 )
                 action = action.astype(np.float32)
+                self.phase.check_actions(action, self.steps + 1, self.step_unit.replace("_", " "))
                 obs, reward, terminated, truncated, info = self._venv.step(action)
                 # With cut_episodes, the run ends at exactly max_steps rows and the running episodes end there
                 # (stored as time limits); without it, every env's step is kept and the episodes run on.
@@ -575,6 +590,7 @@ class OnlineTrainer:
         if self._actor is not None and self._actor is not self.agent:
             self._actor.sync()
         self._unlogged = {f"{self.prefix}{k}": v for k, v in result.items()}
+        self.phase.check(self._unlogged, self.updates)
 
     def _take_unlogged(self) -> dict[str, float]:
         """The metrics :attr:`_unlogged` holds, which it then forgets."""
@@ -627,10 +643,12 @@ def make_source_trainer(
     logdir: str | Path,
     writer: DatasetWriter,
     logger: Logger,
+    phase: Phase,
     checkpoint_extra: Callable[[], dict[str, Any]] | None = None,
 ) -> OnlineTrainer:
     """The online trainer of a two-phase run's source agent (CoWorld's, a fine-tuned DreamerV2's): its checkpoint
-    in ``<logdir>/source`` (with ``checkpoint_extra()``'s entries), its metrics and step unit marked ``source``."""
+    in ``<logdir>/source`` (with ``checkpoint_extra()``'s entries), its metrics and step unit marked ``source``,
+    checked as ``phase`` (:func:`source_phase`)."""
     return OnlineTrainer(
         agent=agent,
         task=source,
@@ -641,7 +659,16 @@ def make_source_trainer(
         checkpoint_extra=checkpoint_extra,
         metric_prefix="source/",
         step_unit_prefix="source_",
+        phase=phase,
     )
+
+
+def source_phase(name: str, *, agent: str, kind: str, config: Config, logdir: str | Path) -> Phase:
+    """The phase of a two-phase run's source agent learning online (``name``: ``source pretraining``, ...), its
+    updates counted as source updates, a rerun starting from the source trainer's checkpoint in ``<logdir>/source``
+    (:mod:`coworld.training.divergence`)."""
+    resume_from = Path(logdir) / "source" / CHECKPOINT_NAME
+    return Phase(name=name, agent=agent, unit="source update", kind=kind, config=config, resume_from=resume_from)
 
 
 def pretrain_source(
@@ -652,16 +679,19 @@ def pretrain_source(
     logdir: str | Path,
     logger: Logger,
     algorithm: str,
+    phase: Phase,
     progress: bool = True,
     cut_episodes: bool = True,
 ) -> int:
     """A two-phase run's source agent (a fine-tuned DreamerV2, a candidate source of CoWorld's choice) trained online
     in ``source`` until ``coworld.pretrain_steps`` steps, recorded in ``<logdir>/source_replay.h5``; a stopped
     pretraining resumes from its last checkpoint with its replay cut back to it (:meth:`OnlineTrainer.restore`).
-    Returns the source environment steps taken."""
+    ``phase``: what its checks call it (:func:`source_phase`). Returns the source environment steps taken."""
     writer = source_replay_writer(logdir, source, algorithm=algorithm, seed=config.seed)
     with writer:
-        trainer = make_source_trainer(agent, source, config=config, logdir=logdir, writer=writer, logger=logger)
+        trainer = make_source_trainer(
+            agent, source, config=config, logdir=logdir, writer=writer, logger=logger, phase=phase
+        )
         try:
             trainer.restore(rollback=True)
             if trainer.steps < config.coworld.pretrain_steps or not trainer.checkpoint_path.exists():

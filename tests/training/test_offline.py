@@ -104,6 +104,7 @@ def test_a_loss_that_stops_being_a_number_stops_the_run_before_its_weights_are_k
             make_sampler=lambda seed: iter(dataset.sampler(4, 8, seed=seed)),
         )
         trainer.save = lambda: saved.append(trainer.updates)  # type: ignore[method-assign]
-        with pytest.raises(TrainingDiverged, match=r"^wm/loss is nan at update 4: the run diverged"):
+        expected = r"^the agent's world-model loss \(wm/loss\) became nan at update 4 \(offline training\); lower"
+        with pytest.raises(TrainingDiverged, match=expected):
             trainer.run(progress=False)
     assert saved == [3] and len(agent.batches) == 4  # the checkpoint of update 3 is the last; nothing after it
