@@ -33,6 +33,7 @@ ON = [
     "coworld.eta_end=0.1",
     "coworld.alpha=1.0",
     "coworld.zeta=3",
+    "coworld.cap_form=on_mean",
 ]
 """Every shared setting that a value changes, Eqs. 3-6 on."""
 OFF = [
