@@ -33,12 +33,14 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import sys
 from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
+from tqdm import tqdm
 
 from coworld import interrupt
 from coworld.agents.coworld import CoWorld
@@ -161,7 +163,17 @@ def choose_source(
             metrics["coworld/source_chosen_index"] = float(candidates.index(choice.chosen))
             logger.log(metrics, 0, unit="target_update")
     _move_chosen(run_dir, choice.chosen)
+    tqdm.write(choice_line(choice), file=sys.stderr)
     return choice, warm_path
+
+
+def choice_line(choice: SourceChoice) -> str:
+    """The choice in one line, every candidate's distance beside it (what the run prints when it has chosen)."""
+    others = ", ".join(f"{name} {choice.distances[name]:.4g}" for name in choice.candidates if name != choice.chosen)
+    return (
+        f"source choice: {choice.chosen}, the closest to the target (distance {choice.distances[choice.chosen]:.4g};"
+        f" {others}), measured on {choice.batches} target batches; {CHOICE_FILE} holds it"
+    )
 
 
 def _warm_up(job: Any, dataset: Any, device: torch.device, path: Path) -> None:

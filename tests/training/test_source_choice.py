@@ -271,6 +271,12 @@ def test_the_command_killed_inside_the_second_candidate_resumes_and_keeps_the_fi
     choice = read_choice(run, CANDIDATES.split(","))
     assert choice is not None and choice.distances["toy_reach"] == first["toy_reach"]
     assert f"done: {run}" in out.stdout
+    other = next(name for name in choice.candidates if name != choice.chosen)  # the choice is said, not only logged
+    said = [line for line in out.stderr.splitlines() if line.startswith("source choice: ")]
+    assert said == [
+        f"source choice: {choice.chosen}, the closest to the target (distance {choice.distances[choice.chosen]:.4g};"
+        f" {other} {choice.distances[other]:.4g}), measured on {choice.batches} target batches; {CHOICE_FILE} holds it"
+    ]
 
 
 @pytest.mark.slow
