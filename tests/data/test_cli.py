@@ -64,8 +64,9 @@ def test_info_discount_help_names_each_presets_critic_discount() -> None:
     info = main.get_command(None, "dataset").get_command(None, "info")
     option = next(p for p in info.params if p.name == "discount")
     discount = {preset: make_config(preset).actor_critic.discount for preset in PRESETS}
-    assert set(discount) == {"tiny", "cpu", "paper"} and discount["tiny"] == discount["cpu"] == option.default
-    assert f"tiny and cpu presets {discount['cpu']}, paper {discount['paper']}" in option.help
+    assert set(discount) == {"tiny", "cpu", "cpu-dv2", "paper"}
+    assert discount["tiny"] == discount["cpu"] == discount["cpu-dv2"] == option.default
+    assert f"tiny, cpu and cpu-dv2 presets {discount['cpu']}, paper {discount['paper']}" in option.help
 
 
 def test_info_json_is_the_summary(dataset_path: Path) -> None:
