@@ -111,6 +111,7 @@ def check_job(
             " episodes committed so far; finish it with `coworld collect ... --resume` for the whole dataset"
         )
     warnings += longer_than_episodes(path, needed_steps(algo, config))
+    warnings += unread_length(algo, config, make_config(preset))
     run_dir = Path(logdir) if logdir is not None else default_logdir(algo, source, target, config.seed)
     job = TrainJob(algo, source if algo in NEEDS_SOURCE else None, target, path, run_dir, config, preset)
     if force:
@@ -251,6 +252,22 @@ def check_dataset(path: Path, task: str, action_size: int, needed: tuple[int, st
                 f" (`coworld collect ... --resume`) or lower {key} with --set"
             )
         return bool(data.complete)
+
+
+def unread_length(algo: str, config: Config, preset_config: Config) -> list[str]:
+    """A warning when ``train.steps``, the length of an online collection (``coworld collect``), was set for a
+    ``coworld train`` run, which never reads it; it names the settings that set the run's length."""
+    if config.train.steps == preset_config.train.steps:
+        return []
+    if algo in MODEL_FREE:
+        section = "drqbc" if algo == "drq-bc" else "curl"
+        length = f"{getattr(config, section).updates:,} updates ({section}.updates)"
+    else:
+        cw = config.coworld
+        length = f"{cw.iterations * cw.target_updates:,} target updates (coworld.iterations x coworld.target_updates)"
+        if algo in NEEDS_SOURCE:
+            length += f" after {cw.pretrain_steps:,} source env steps (coworld.pretrain_steps)"
+    return [f"train.steps is the length of `coworld collect`'s online run, not of training: {algo} makes {length}"]
 
 
 def longer_than_episodes(path: Path, needed: tuple[int, str] | None) -> list[str]:

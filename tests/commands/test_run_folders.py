@@ -250,3 +250,25 @@ def test_sequences_longer_than_every_episode_are_warned_of(toy_dataset) -> None:
     assert longer_than_episodes(toy_dataset, None) == []
     [warning] = longer_than_episodes(toy_dataset, (longest + 1, "train.seq_len"))
     assert f"train.seq_len={longest + 1} is longer than every episode" in warning and f"to {longest} or less" in warning
+
+
+@pytest.mark.parametrize(
+    ("algo", "length"),
+    [
+        ("dreamerv2", "dreamerv2 makes 40 target updates (coworld.iterations x coworld.target_updates)"),
+        ("coworld", "coworld makes 40 target updates (coworld.iterations x coworld.target_updates) after 1,000 source"),
+        ("drq-bc", "drq-bc makes 200 updates (drqbc.updates)"),
+    ],
+)
+def test_train_steps_set_for_training_is_said_to_be_unread(algo: str, length: str) -> None:
+    """``--set train.steps=300`` on ``coworld train`` changes nothing: the run says so and names its length."""
+    from coworld.config import make_config
+    from coworld.training.train import unread_length
+
+    preset = make_config("tiny")
+    assert unread_length(algo, preset, preset) == []
+    [warning] = unread_length(algo, make_config("tiny", ["train.steps=300"]), preset)
+    assert (
+        warning.startswith("train.steps is the length of `coworld collect`'s online run, not of training")
+        and length in warning
+    )
