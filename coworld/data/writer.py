@@ -354,6 +354,7 @@ class DatasetWriter:
         rewards: np.ndarray,
         terminated: bool,
         infos: Mapping[str, np.ndarray] | None = None,
+        collector: Mapping[str, Any] | None = None,
     ) -> None:
         """Append one whole episode of T transitions and commit it.
 
@@ -364,6 +365,8 @@ class DatasetWriter:
             terminated: the episode ended in a true terminal state (else it was cut by a time limit).
             infos: optional per-step extras, each (T, ...) (e.g. ``success``, ``behavior_log_prob``); every episode
                 of a dataset must carry the same keys.
+            collector: fields merged into the ``collector`` record in the episode's commit, so that a count it keeps
+                of the episodes (a random collection's ``steps``) is never behind them, whenever the writer stops.
         """
         f = self._handle()
         obs = np.asarray(observations)
@@ -383,12 +386,13 @@ class DatasetWriter:
         if not (np.isfinite(act).all() and np.isfinite(rew).all()):
             raise DatasetError("episode has non-finite actions or rewards; refusing to store it")
         extras = self._check_infos(infos or {}, t)
+        record = None if collector is None else _to_json({**json.loads(f.attrs["collector"]), **collector}, "collector")
         n, e = self.num_steps, self.num_episodes
         problem = room_problem(self.path, self._bytes_needed(obs, act, extras))
         if problem is not None:  # refused before a byte is written: the file stays as the last commit left it
             raise self._refused(problem) from None
         try:
-            self._write_episode(f, n, e, obs, act, rew, bool(terminated), extras)
+            self._write_episode(f, n, e, obs, act, rew, bool(terminated), extras, record)
         except (OSError, RuntimeError) as err:
             if failure_errno(err) not in WRITE_ERRNOS:
                 raise
@@ -404,8 +408,10 @@ class DatasetWriter:
         rew: np.ndarray,
         terminated: bool,
         extras: dict[str, np.ndarray],
+        record: str | None = None,
     ) -> None:
-        """Write the rows and the episode record at rows ``n ..`` and episode ``e``, flush, then commit."""
+        """Write the rows and the episode record at rows ``n ..`` and episode ``e``, flush, then commit (with the
+        ``collector`` record ``record``, where given)."""
         t = len(act)
         if not self._marked_incomplete:
             f.attrs["complete"] = False
@@ -438,6 +444,8 @@ class DatasetWriter:
         f.flush()  # the data is on disk before the counters say it is there
         f.attrs["num_rows"] = n + t
         f.attrs["num_episodes"] = e + 1
+        if record is not None:
+            f.attrs["collector"] = record
         f.attrs["updated"] = _now()
         f.flush()
 

@@ -178,6 +178,18 @@ def test_update_metadata_merges_collector_fields(tmp_path: Path, helpers: Module
         assert json.loads(f.attrs["collector"])["last_eval_return"] == 512.5
 
 
+def test_collector_fields_are_committed_with_their_episode(tmp_path: Path, helpers: ModuleType) -> None:
+    good, bad = helpers.make_episodes([5, 4])
+    with DatasetWriter(tmp_path / "c.h5", quality="random", **helpers.WRITER_ARGS) as writer:
+        writer.add_episode(good["observations"], good["actions"], good["rewards"], False, good["infos"], {"steps": 5})
+        with pytest.raises(DatasetError, match="non-finite"):  # refused: neither the episode nor its count goes in
+            rewards = np.full(4, np.nan, np.float32)
+            writer.add_episode(bad["observations"], bad["actions"], rewards, False, bad["infos"], {"steps": 9})
+    with h5py.File(tmp_path / "c.h5", "r") as f:
+        assert json.loads(f.attrs["collector"]) == {"algorithm": "random", "seed": 0, "steps": 5}
+        assert int(f.attrs["num_rows"]) == 5
+
+
 @pytest.mark.parametrize(
     ("change", "message"),
     [
