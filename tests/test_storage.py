@@ -239,3 +239,22 @@ def test_an_output_in_a_place_that_takes_no_files_is_one_line(tmp_path: Path) ->
         StorageError, match=r"^cannot write to /proc \(No such file or directory\); choose another --out$"
     ):
         check_writable("/proc", "--out")
+
+
+def test_a_collection_resumed_after_a_full_disk_is_the_uninterrupted_one(
+    small_disk, processes: ModuleType, helpers: ModuleType, tmp_path: Path
+) -> None:
+    disk = small_disk(3 * MiB)
+    out, whole = disk.path / "a.h5", tmp_path / "whole.h5"
+    args = [*COLLECT, "--episodes", "20", "--seed", "5", "--compression", "none"]
+    _one_error_line(processes, processes.run_cli(*args, "--out", str(out), **disk.popen()))
+    with open_dataset(out) as data:  # the record of the stopped collection counts the rows it holds
+        assert 0 < data.num_episodes < 20 and data.metadata["collector"]["steps"] == data.num_steps
+    disk.grow(64 * MiB)
+    for path, resume in ((out, ["--resume"]), (whole, [])):
+        result = processes.run_cli(*args, "--out", str(path), *resume, **disk.popen())
+        assert result.returncode == 0, result.stderr[-3000:]
+    assert helpers.episode_digests(out) == helpers.episode_digests(whole)  # frames, actions, rewards, ends
+    for path in (out, whole):
+        with open_dataset(path) as data:
+            assert data.num_steps == 1000 and data.metadata["collector"]["steps"] == 1000

@@ -1,14 +1,23 @@
 """Collect datasets by running a policy in vectorised environments and writing each episode as soon as it ends.
 
-:func:`run_collection` is the policy-agnostic loop (any ``policy(obs, is_first) -> (actions, log_prob)``);
+:func:`run_collection` is the policy-agnostic loop (any ``policy(obs, is_first, seeds) -> (actions, log_prob)``);
 :func:`collect_random` builds a ``random``-quality dataset with :class:`UniformPolicy`. Both stop at an exact budget
 (episodes, or rows with the last episode cut as a timeout) and resume a partial dataset where it stopped.
+
+Episode ``k`` of a collection seeded ``s`` is a function of ``(s, k)`` alone: its environment is reset with
+:func:`episode_seed` ``(s, k)`` (an episode is a function of its seed and its actions,
+:class:`coworld.envs.base.PixelEnv`) and the random policy draws its actions from that seed too. Episodes are
+written in the order of ``k``, whichever worker ends first. So a collection stopped by anything (a kill, a full disk,
+Ctrl-C) and resumed holds the episodes of the same collection never stopped, bit for bit, and the worker count
+changes how fast a dataset is made, not what it holds. The ``steps`` of a random collection's ``collector`` record
+are the rows its episodes hold, committed with each episode.
 """
 
 from __future__ import annotations
 
 import contextlib
 import dataclasses
+import json
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -25,8 +34,19 @@ from coworld.errors import ConfigError, DatasetError
 from coworld.progress import progress_bar
 from coworld.text import count
 
-# policy(obs (W, H, W, C) uint8, is_first (W,) bool) -> (actions (W, A) float32, log_prob (W,) float32 or None)
-Policy = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray | None]]
+# policy(obs (W, H, W, C) uint8, is_first (W,) bool, seeds (W,) int64: each env's running episode's seed)
+#   -> (actions (W, A) float32, log_prob (W,) float32 or None)
+Policy = Callable[[np.ndarray, np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray | None]]
+
+ACTION_STREAM = 1
+"""Mixed into an episode's seed for the generator of its random actions (its environment draws from the seed
+itself, so the two streams stay apart)."""
+
+
+def episode_seed(seed: int, index: int) -> int:
+    """The seed of episode ``index`` (counted from 0 over the whole dataset) of a collection seeded ``seed``: it
+    seeds the episode's environment and its random actions, whichever run or worker makes it."""
+    return int(np.random.SeedSequence([seed, index]).generate_state(1)[0])
 
 
 @dataclass(frozen=True)
@@ -66,17 +86,24 @@ class CollectSummary:
 
 
 class UniformPolicy:
-    """Actions drawn uniformly from the box ``[low, high]`` (A,), with their (constant) log-probability."""
+    """Actions drawn uniformly from the box ``[low, high]`` (A,), with their (constant) log-probability.
 
-    def __init__(self, low: np.ndarray, high: np.ndarray, seed: int) -> None:
+    Each episode's actions come from a generator of its own, seeded by the episode's seed (with
+    :data:`ACTION_STREAM`) when it starts: they depend on the episode alone, not on the episodes before it.
+    """
+
+    def __init__(self, low: np.ndarray, high: np.ndarray) -> None:
         self.low = np.asarray(low, np.float32)
         self.high = np.asarray(high, np.float32)
-        self._rng = np.random.default_rng(seed)
+        self._rngs: dict[int, np.random.Generator] = {}
+        """Env i's running episode's generator."""
         self._log_prob = -float(np.log(self.high.astype(np.float64) - self.low).sum())
 
-    def __call__(self, obs: np.ndarray, is_first: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def __call__(self, obs: np.ndarray, is_first: np.ndarray, seeds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         n = len(obs)
-        actions = self._rng.uniform(self.low, self.high, size=(n, len(self.low))).astype(np.float32)
+        for i in np.flatnonzero(is_first):
+            self._rngs[int(i)] = np.random.default_rng([int(seeds[i]), ACTION_STREAM])
+        actions = np.stack([self._rngs[i].uniform(self.low, self.high) for i in range(n)]).astype(np.float32)
         return actions, np.full(n, self._log_prob, np.float32)
 
 
@@ -84,6 +111,8 @@ class UniformPolicy:
 class _Episode:
     """One environment's episode in flight: frames o_0 .. o_t and the t rows so far."""
 
+    index: int
+    """Its place in the dataset (it is written after every episode of a smaller index)."""
     frames: list[np.ndarray]
     actions: list[np.ndarray] = field(default_factory=list)
     rewards: list[float] = field(default_factory=list)
@@ -113,66 +142,68 @@ def run_collection(
 ) -> int:
     """Step a gymnasium VectorEnv with ``policy`` until ``budget`` is met, writing each episode whole as it ends.
 
-    Per-step infos recorded: ``success`` when the environment reports it, ``behavior_log_prob`` when the policy
-    returns one. With a step budget the episode that crosses it is cut to fit and stored as a timeout. Returns the
-    number of environment steps taken, which are also added to the ``steps`` field of the collector metadata.
+    The dataset's episode ``k`` (counting those it holds already) is the one whose environment was reset with
+    :func:`episode_seed` ``(seed, k)``; an environment that ends an episode is reset at once with the seed of the next
+    one to start (any autoreset mode), and episodes are written in the order of ``k`` (one that ends before an
+    earlier one waits for it). Per-step infos recorded: ``success`` when the environment reports it,
+    ``behavior_log_prob`` when the policy returns one. With a step budget the episode that crosses it is cut to fit
+    and stored as a timeout. Each episode's commit sets the collector record's ``steps`` to the rows the dataset then
+    holds. Returns the number of environment steps taken (with the episodes still running when the budget was met).
     """
     from gymnasium.vector import AutoresetMode
 
-    mode = AutoresetMode(envs.metadata.get("autoreset_mode", AutoresetMode.NEXT_STEP))
-    if mode == AutoresetMode.DISABLED:
-        raise ConfigError("collection needs a vector env that resets itself (autoreset_mode next_step or same_step)")
+    same_step = AutoresetMode(envs.metadata.get("autoreset_mode", AutoresetMode.NEXT_STEP)) == AutoresetMode.SAME_STEP
     n_envs = int(envs.num_envs)
-    obs, _ = envs.reset(seed=seed)
-    episodes = [_Episode([np.asarray(obs[i])]) for i in range(n_envs)]
-    resetting = np.zeros(n_envs, bool)  # NEXT_STEP mode: the next step() only resets these envs
+    first = writer.num_episodes
+    seeds = np.array([episode_seed(seed, first + i) for i in range(n_envs)], np.int64)
+    obs, _ = envs.reset(seed=[int(s) for s in seeds])
+    running = [_Episode(first + i, [np.asarray(obs[i])]) for i in range(n_envs)]
+    ended: dict[int, tuple[_Episode, bool]] = {}  # index -> (episode, terminated), until the ones before are written
+    next_index = first + n_envs
     is_first = np.ones(n_envs, bool)
     record_success: bool | None = None  # decided by the first step's info
     returns = list(writer.returns())
     total = budget.steps if budget.steps is not None else (budget.episodes or 0) * (expected_length or 0) or None
     env_steps = 0
-    try:
-        with progress_bar(
-            total=total, initial=writer.num_steps, desc="collect", unit="env steps", enabled=progress
-        ) as bar:
-            while not budget.reached(writer):
-                interrupt.check()
-                actions, log_prob = policy(obs, is_first)
-                obs, rewards, terminated, truncated, info = envs.step(actions)
-                for i in range(n_envs):
-                    if resetting[i]:  # this step only reset env i: o_0 of its next episode
-                        episodes[i], resetting[i], is_first[i] = _Episode([np.asarray(obs[i])]), False, True
-                        continue
-                    done = bool(terminated[i] or truncated[i])
-                    # SAME_STEP mode returns the next episode's o_0 at once; the final frame and info come apart.
-                    final = done and mode == AutoresetMode.SAME_STEP
-                    step_info = info["final_info"] if final else info
-                    if record_success is None:
-                        record_success = "success" in step_info
-                    extras: dict[str, Any] = {}
-                    if record_success:
-                        extras["success"] = bool(_info_value(step_info, "success", i, False))
-                    if log_prob is not None:
-                        extras["behavior_log_prob"] = float(log_prob[i])
-                    episodes[i].add(actions[i], rewards[i], info["final_obs"][i] if final else obs[i], extras)
-                    is_first[i] = False
-                    env_steps += 1
-                    if not done:
-                        continue
-                    if not budget.reached(writer):
-                        _write(writer, episodes[i], bool(terminated[i]), budget)
-                        returns.append(float(writer.returns()[-1]))
-                        bar.set_postfix(episodes=writer.num_episodes, mean_return=f"{np.mean(returns):.1f}")
-                    if mode == AutoresetMode.NEXT_STEP:
-                        resetting[i] = True
-                    else:
-                        episodes[i], is_first[i] = _Episode([np.asarray(obs[i])]), True
-                in_flight = sum(len(ep) for ep, r in zip(episodes, resetting, strict=True) if not r)
-                position = writer.num_steps + in_flight
-                bar.update(max(0, min(position, total or position) - bar.n))
-    finally:  # the environment steps taken, also when interrupted
-        steps = int(writer.metadata["collector"].get("steps") or 0) + env_steps
-        writer.update_metadata(steps=steps)
+    with progress_bar(total=total, initial=writer.num_steps, desc="collect", unit="env steps", enabled=progress) as bar:
+        while not budget.reached(writer):
+            interrupt.check()
+            actions, log_prob = policy(obs, is_first, seeds)
+            obs, rewards, terminated, truncated, info = envs.step(actions)
+            done = np.logical_or(terminated, truncated)
+            for i in range(n_envs):
+                # SAME_STEP mode returns the next episode's o_0 at once; the final frame and info come apart.
+                final = bool(done[i]) and same_step
+                step_info = info["final_info"] if final else info
+                if record_success is None:
+                    record_success = "success" in step_info
+                extras: dict[str, Any] = {}
+                if record_success:
+                    extras["success"] = bool(_info_value(step_info, "success", i, False))
+                if log_prob is not None:
+                    extras["behavior_log_prob"] = float(log_prob[i])
+                running[i].add(actions[i], rewards[i], info["final_obs"][i] if final else obs[i], extras)
+                env_steps += 1
+                if done[i]:
+                    ended[running[i].index] = (running[i], bool(terminated[i]))
+            while writer.num_episodes in ended and not budget.reached(writer):  # the next episode of the dataset
+                episode, ends_in_terminal = ended.pop(writer.num_episodes)
+                _write(writer, episode, ends_in_terminal, budget)
+                returns.append(float(writer.returns()[-1]))
+                bar.set_postfix(episodes=writer.num_episodes, mean_return=f"{np.mean(returns):.1f}")
+            is_first = done
+            if done.any() and not budget.reached(writer):
+                starting = {int(i): next_index + k for k, i in enumerate(np.flatnonzero(done))}
+                next_index += len(starting)
+                for i, index in starting.items():
+                    seeds[i] = episode_seed(seed, index)
+                reset_seeds = [int(seeds[i]) if i in starting else None for i in range(n_envs)]
+                obs, _ = envs.reset(seed=reset_seeds, options={"reset_mask": done})
+                for i, index in starting.items():
+                    running[i] = _Episode(index, [np.asarray(obs[i])])
+            in_flight = sum(len(ep) for ep, _ in ended.values()) + sum(len(ep) for ep in running)
+            position = writer.num_steps + in_flight
+            bar.update(max(0, min(position, total or position) - bar.n))
     return env_steps
 
 
@@ -190,9 +221,8 @@ def _write(writer: DatasetWriter, ep: _Episode, terminated: bool, budget: Budget
         t, terminated = budget.steps - writer.num_steps, False
     dtypes = {"success": bool, "behavior_log_prob": np.float32}
     infos = {name: np.asarray(values[:t], dtypes.get(name)) for name, values in ep.infos.items()}
-    writer.add_episode(
-        np.stack(ep.frames[: t + 1]), np.stack(ep.actions[:t]), np.asarray(ep.rewards[:t]), terminated, infos
-    )
+    frames, actions, rewards = np.stack(ep.frames[: t + 1]), np.stack(ep.actions[:t]), np.asarray(ep.rewards[:t])
+    writer.add_episode(frames, actions, rewards, terminated, infos, collector={"steps": writer.num_steps + t})
 
 
 def default_dataset_path(task: str, quality: str) -> Path:
@@ -273,6 +303,8 @@ def collect_random(
     path = Path(out) if out is not None else default_dataset_path(task, "random")
     collector = {"algorithm": "random", "policy": "uniform", "preset": None, "seed": seed, "workers": workers}
     collector.update(steps=0, last_eval_return=None)
+    if resume:
+        _check_resumable(path, seed)
     with new_dataset(
         path,
         task,
@@ -296,6 +328,8 @@ def _collect_random_into(
     progress: bool,
 ) -> CollectSummary:
     start = time.perf_counter()
+    if writer.metadata["collector"].get("steps") != writer.num_steps:  # a record an older collector left behind
+        writer.update_metadata(steps=writer.num_steps)
     if budget.reached(writer):
         if writer.complete:
             raise DatasetError(
@@ -305,23 +339,39 @@ def _collect_random_into(
             )
         writer.close(complete=True)  # the collection stopped after its last episode, before marking it done
         return _summary(writer.path, 0, start)
-    # A resumed run draws fresh episodes: its seed mixes in how many episodes already exist.
-    run_seed = seed
-    if writer.num_episodes:
-        run_seed = int(np.random.SeedSequence([seed, writer.num_episodes]).generate_state(1)[0])
-    envs = make_vector(spec.name, workers, run_seed)
+    envs = make_vector(spec.name, workers, seed)  # each episode is reset with its own seed (episode_seed)
     try:
         space = envs.single_action_space
         if tuple(space.shape) != (spec.action_size,):
             raise DatasetError(f"{spec.name}: env action shape {space.shape} != task spec ({spec.action_size},)")
-        policy = UniformPolicy(space.low, space.high, run_seed)
+        policy = UniformPolicy(space.low, space.high)
         env_steps = run_collection(
-            envs, policy, writer, budget, seed=run_seed, progress=progress, expected_length=spec.episode_length
+            envs, policy, writer, budget, seed=seed, progress=progress, expected_length=spec.episode_length
         )
     finally:
         envs.close()
     writer.close(complete=True)
     return _summary(writer.path, env_steps, start)
+
+
+def _check_resumable(path: Path, seed: int) -> None:
+    """Refuse to resume a dataset whose next episodes would not be those of the collection that made it: one made by
+    another collector, or with another seed (a file that cannot be read is left to the writer to refuse)."""
+    try:
+        with h5py.File(path, "r") as f:
+            theirs = json.loads(f.attrs["collector"])
+    except (OSError, KeyError, ValueError):
+        return
+    if theirs.get("algorithm") != "random":
+        raise DatasetError(
+            f"cannot resume {path}: it was made by {theirs.get('algorithm')}, not by random actions; choose another"
+            f" --out"
+        )
+    if theirs.get("seed") != seed:
+        raise DatasetError(
+            f"cannot resume {path}: it was made with --seed {theirs.get('seed')}, not {seed}; resume it with --seed"
+            f" {theirs.get('seed')} (its episodes are a function of the seed) or pass --force to start it over"
+        )
 
 
 def _holds_no_episodes(path: Path) -> bool:

@@ -150,7 +150,8 @@ FAKE_SPEC = TaskSpec(FAKE_TASK, "toy", 2, 12, 1, "", "test fake", 10.0, 0.0)
 
 
 class FakePixelEnv(gym.Env):
-    """Frames tag (step, episode count); reward = action[0]; may terminate at random, else truncates at 12 steps.
+    """Frames tag (step, a byte drawn at reset); reward = action[0]; may terminate at random, else truncates at 12
+    steps. As :class:`coworld.envs.base.PixelEnv` promises, an episode is a function of its reset seed and actions.
 
     Reports ``success`` (step >= 3) in its info. ``delay`` seconds of sleep per step slow it down for crash tests.
     """
@@ -161,11 +162,11 @@ class FakePixelEnv(gym.Env):
 
     def __init__(self, delay: float = 0.0, max_length: int = 12, terminate_prob: float = 0.15) -> None:
         self.delay, self.max_length, self.terminate_prob = delay, max_length, terminate_prob
-        self.t, self.episode = 0, -1
+        self.t, self.tag = 0, 0
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict]:
         super().reset(seed=seed)
-        self.t, self.episode = 0, self.episode + 1
+        self.t, self.tag = 0, int(self.np_random.integers(256))
         return self._obs(), {}
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
@@ -177,7 +178,7 @@ class FakePixelEnv(gym.Env):
 
     def _obs(self) -> np.ndarray:
         obs = np.zeros(IMAGE, np.uint8)
-        obs[0, 0, 0], obs[0, 0, 1] = self.t, self.episode % 256
+        obs[0, 0, 0], obs[0, 0, 1] = self.t, self.tag
         return obs
 
 

@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import json
 import os
 from pathlib import Path
 from types import ModuleType
 
+import h5py
 import numpy as np
 import pytest
 from click.testing import CliRunner
@@ -150,3 +152,57 @@ def test_a_collection_that_stores_nothing_leaves_no_file(
     with pytest.raises(ConfigError, match="no renderer"):
         collect_random(fake_task, tmp_path / "n.h5", episodes=2, progress=False)
     assert list(tmp_path.iterdir()) == []  # no dataset, no lock, no temporary file
+
+
+@pytest.mark.parametrize("workers", [1, 3])
+def test_a_resumed_collection_is_the_uninterrupted_one_and_its_record_counts_its_rows(
+    tmp_path: Path, fake_task: str, helpers: ModuleType, workers: int
+) -> None:
+    whole = collect_random(fake_task, tmp_path / "whole.h5", episodes=9, seed=4, workers=workers, progress=False)
+    part = tmp_path / "part.h5"
+    collect_random(fake_task, part, episodes=4, seed=4, workers=workers, progress=False)
+    collect_random(fake_task, part, episodes=9, seed=4, workers=workers, resume=True, progress=False)
+    assert helpers.episode_digests(part) == helpers.episode_digests(whole.path)  # frames, actions, rewards, ends
+    for path in (whole.path, part):
+        with open_dataset(path) as data:
+            assert data.metadata["collector"]["steps"] == data.num_steps
+
+
+def test_a_collection_is_the_same_whatever_its_workers(tmp_path: Path, fake_task: str, helpers: ModuleType) -> None:
+    one = collect_random(fake_task, tmp_path / "one.h5", max_steps=70, seed=2, workers=1, progress=False)
+    three = collect_random(fake_task, tmp_path / "three.h5", max_steps=70, seed=2, workers=3, progress=False)
+    assert helpers.episode_digests(one.path) == helpers.episode_digests(three.path)
+    part = tmp_path / "part.h5"  # its first episodes with one worker, the rest with three
+    collect_random(fake_task, part, episodes=3, seed=2, workers=1, progress=False)
+    collect_random(fake_task, part, max_steps=70, seed=2, workers=3, resume=True, progress=False)
+    assert helpers.episode_digests(part) == helpers.episode_digests(one.path)
+
+
+def test_a_resume_that_would_make_other_episodes_is_refused(
+    tmp_path: Path, fake_task: str, helpers: ModuleType
+) -> None:
+    path = tmp_path / "r.h5"
+    collect_random(fake_task, path, episodes=2, seed=1, progress=False)
+    before = helpers.file_state(path)
+    with pytest.raises(DatasetError, match="made with --seed 1, not 2; resume it with --seed 1"):
+        collect_random(fake_task, path, episodes=4, seed=2, resume=True, progress=False)
+    assert helpers.file_state(path) == before
+    with h5py.File(path, "r+") as f:  # the same shapes, made by another collector
+        f.attrs["collector"] = json.dumps({"algorithm": "dreamerv2", "seed": 1})
+    before = helpers.file_state(path)
+    with pytest.raises(DatasetError, match="made by dreamerv2, not by random actions; choose another --out"):
+        collect_random(fake_task, path, episodes=4, seed=1, resume=True, progress=False)
+    assert helpers.file_state(path) == before
+
+
+def test_a_resume_corrects_the_step_count_an_older_collector_left(
+    tmp_path: Path, fake_task: str, helpers: ModuleType
+) -> None:
+    path = tmp_path / "old.h5"
+    collect_random(fake_task, path, episodes=3, seed=1, progress=False)
+    with h5py.File(path, "r+") as f:  # what a collection stopped by a full disk used to leave
+        f.attrs["collector"] = json.dumps({**json.loads(f.attrs["collector"]), "steps": 0})
+        f.attrs["complete"] = False
+    collect_random(fake_task, path, episodes=3, seed=1, resume=True, progress=False)
+    with open_dataset(path) as data:
+        assert data.complete and data.metadata["collector"]["steps"] == data.num_steps > 0

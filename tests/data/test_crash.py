@@ -118,3 +118,23 @@ def test_collect_resume_after_a_kill_collects_exactly_the_request(
         for i, image in enumerate(survived):
             np.testing.assert_array_equal(data.episode(i)["image"], image)
     assert verify_dataset(path) == []
+
+
+def test_a_collection_killed_and_resumed_is_the_uninterrupted_one(
+    tmp_path: Path, helpers: ModuleType, processes: ModuleType, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    args = ["collect", "--policy", "random", "--task", "fake_task", "--episodes", "15", "--workers", "2", "--quiet"]
+    path = tmp_path / "killed.h5"
+    proc = processes.start_script(processes.COLLECT_SCRIPT, *args, "--out", str(path))
+    processes.wait_for_episodes(proc, 4)
+    processes.kill(proc)
+    with open_dataset(path) as data:  # the record of what was killed counts the rows it holds
+        assert not data.complete and data.metadata["collector"]["steps"] == data.num_steps
+    helpers.patch_envs(monkeypatch.setattr)
+    for out, resume in ((path, ["--resume"]), (tmp_path / "whole.h5", [])):
+        result = CliRunner().invoke(main, [*args, "--out", str(out), *resume])
+        assert result.exit_code == 0, result.output
+    assert helpers.episode_digests(path) == helpers.episode_digests(tmp_path / "whole.h5")
+    for out in (path, tmp_path / "whole.h5"):
+        with open_dataset(out) as data:
+            assert data.complete and data.metadata["collector"]["steps"] == data.num_steps
