@@ -258,3 +258,25 @@ def test_a_collection_resumed_after_a_full_disk_is_the_uninterrupted_one(
     for path in (out, whole):
         with open_dataset(path) as data:
             assert data.num_steps == 1000 and data.metadata["collector"]["steps"] == 1000
+
+
+def test_the_dreamerv2_collector_resumed_after_a_full_disk_is_the_uninterrupted_one(
+    small_disk, processes: ModuleType, helpers: ModuleType, tmp_path: Path
+) -> None:
+    """With a checkpoint at every episode's end (DV2_COLLECT), the agent's checkpoint saw every episode the stopped
+    dataset holds: the resume goes on exactly, and the record's counts are those of the run never stopped."""
+    disk = small_disk(3 * MiB)
+    out, whole = disk.path / "b.h5", tmp_path / "whole.h5"
+    (tmp_path / "agent").mkdir()
+    (disk.path / "b.run").symlink_to(tmp_path / "agent")  # the agent's run folder on a disk with room: the data fails
+    args = [*DV2_COLLECT, "--max-steps", "300", "--compression", "none"]
+    _one_error_line(processes, processes.run_cli(*args, "--out", str(out), **disk.popen()))
+    disk.grow(64 * MiB)
+    for path, resume in ((out, ["--resume"]), (whole, [])):
+        result = processes.run_cli(*args, "--out", str(path), *resume, **disk.popen())
+        assert result.returncode == 0, result.stderr[-3000:]
+    assert helpers.episode_digests(out) == helpers.episode_digests(whole)
+    with open_dataset(out) as data, open_dataset(whole) as reference:
+        record, expected = data.metadata["collector"], reference.metadata["collector"]
+        assert record["steps"] == data.num_steps == 300 and record.pop("run") != expected.pop("run")
+        assert record == expected  # steps, updates, stop reason
