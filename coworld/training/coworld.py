@@ -291,6 +291,7 @@ class Algorithm1:
             online = {"updates": state["source_updates"], "last_eval": None, "last_eval_step": -1}
             if "source_act_rng" in state:
                 online["act_rng"] = state["source_act_rng"]
+        # the source's online state holds the metrics file's mark: resuming it cuts the file back to this checkpoint
         self.source.resume(online, rollback="source_online" in state)
         self.state = Progress(**state["progress"])
         # a checkpoint is written at a phase's start: the source phases before it made K2 relabelled updates each

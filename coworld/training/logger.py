@@ -3,13 +3,19 @@
 Keys are namespaced (``wm/``, ``actor/``, ``critic/``, ``coworld/``, ``eval/``, ...). Every call to
 :meth:`Logger.log` writes one record at one step to every output; :meth:`Logger.log_image` writes a picture to
 TensorBoard (e.g. the open-loop prediction strips, ``openl/<task>``).
+
+A checkpoint keeps :meth:`Logger.mark` (``metrics.jsonl``'s length and digest as the checkpoint is written); a run
+resumed from it redoes the updates that followed, so it first cuts the file back there (:meth:`Logger.rewind`) and
+logs each record once, as an uninterrupted run does.
 """
 
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import json
 import math
+import os
 import sys
 import threading
 import time
@@ -23,6 +29,9 @@ OUTPUTS = ("console", "jsonl", "tensorboard")
 
 CONSOLE_KEYS = ("eval/", "/loss", "perf/", "coworld/")
 """Metrics whose key contains one of these go to the console too (all go to the files)."""
+
+METRICS_MARK = "metrics_mark"
+"""The checkpoint entry holding :meth:`Logger.mark` (absent from checkpoints written before it was kept)."""
 
 
 class Logger:
@@ -71,6 +80,30 @@ class Logger:
         if self._console and shown:
             text = "  ".join(f"{k} {v:.4g}" for k, v in sorted(shown.items()))
             tqdm.tqdm.write(f"[{unit} {step:,}] {text}", file=sys.stderr)
+
+    def mark(self) -> dict[str, Any] | None:
+        """Where ``metrics.jsonl`` stands now, for a checkpoint to keep: its length in bytes and the SHA-256 of those
+        bytes (which tells this file from another run's, e.g. a pretraining moved here); None without the jsonl
+        output."""
+        if self._jsonl is None:
+            return None
+        self._jsonl.flush()
+        data = (self.logdir / "metrics.jsonl").read_bytes()
+        return {"bytes": len(data), "sha256": hashlib.sha256(data).hexdigest()}
+
+    def rewind(self, mark: Mapping[str, Any] | None) -> None:
+        """Cut ``metrics.jsonl`` back to ``mark`` (a checkpoint's :meth:`mark`), dropping the records a run resumed
+        from that checkpoint logs again. The file is left as it is where ``mark`` is None (a checkpoint from before
+        marks were kept) or does not describe the start of this file (another run's; a file already shorter)."""
+        if self._jsonl is None or mark is None:
+            return
+        self._jsonl.flush()
+        path, size = self.logdir / "metrics.jsonl", int(mark["bytes"])
+        with open(path, "rb") as f:
+            kept = f.read(size)
+        if len(kept) != size or hashlib.sha256(kept).hexdigest() != mark["sha256"]:
+            return
+        os.truncate(path, size)  # the file is open for appending: the next record goes at the new end
 
     def log_image(self, tag: str, image: Any, step: int) -> None:
         """Record a uint8 ``(H, W, 3)`` picture at ``step`` (TensorBoard only; the other outputs take scalars)."""

@@ -23,7 +23,7 @@ from coworld.progress import progress_bar
 from coworld.training.checkpoint import CHECKPOINT_NAME, read_run_checkpoint, restore_agent, run_state, save_checkpoint
 from coworld.training.divergence import Phase
 from coworld.training.evaluate import evaluate
-from coworld.training.logger import Logger, Rate
+from coworld.training.logger import METRICS_MARK, Logger, Rate
 from coworld.training.openloop import log_open_loop
 
 CHECKPOINT_KEYS = ("agent", "updates", "last_eval", "rng")
@@ -108,12 +108,14 @@ class OfflineTrainer:
         restore_agent(self.agent, state, self.checkpoint_path, f"a {self.kind} agent of this config")
         self.updates = int(state["updates"])
         self.last_eval = state["last_eval"]
+        self.logger.rewind(state.get(METRICS_MARK))  # the updates after the checkpoint are made (and logged) again
         return True
 
     def save(self) -> None:
         state = run_state(self.kind, self.task, self.config, self.agent)
         with self.phase.saving(self.updates):
-            save_checkpoint(self.checkpoint_path, {**state, "updates": self.updates, "last_eval": self.last_eval})
+            counters = {"updates": self.updates, "last_eval": self.last_eval, METRICS_MARK: self.logger.mark()}
+            save_checkpoint(self.checkpoint_path, {**state, **counters})
 
     def run(self, *, progress: bool = True) -> OfflineResult:
         s = self.schedule

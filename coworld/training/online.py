@@ -58,7 +58,7 @@ from coworld.progress import progress_bar
 from coworld.training.checkpoint import CHECKPOINT_NAME, read_run_checkpoint, restore_agent, run_state, save_checkpoint
 from coworld.training.divergence import Phase
 from coworld.training.evaluate import evaluate
-from coworld.training.logger import Logger, Rate
+from coworld.training.logger import METRICS_MARK, Logger, Rate
 from coworld.training.openloop import log_open_loop
 from coworld.training.replay import Replay
 
@@ -280,6 +280,8 @@ class OnlineTrainer:
         self.updates = int(state["updates"])
         self.last_eval = state["last_eval"]
         self.last_eval_step = int(state["last_eval_step"])
+        if state.get("episodes") == self.writer.num_episodes:  # the steps after the checkpoint are taken (and logged)
+            self.logger.rewind(state.get(METRICS_MARK))  # again; a collection that recorded more goes on after them
         if "act_rng" in state:  # checkpoints from before acting had its own generator start it afresh
             self.act_rng.set_state(state["act_rng"].cpu())  # loaded onto the agent's device; generators take CPU states
         if "acting" in state and state["episodes"] == self.writer.num_episodes:
@@ -305,6 +307,7 @@ class OnlineTrainer:
             "last_checkpoint_step": self._last_checkpoint_step,
             "act_rng": self.act_rng.get_state(),
             "replay_rng": self.replay.sampler_state,
+            METRICS_MARK: self.logger.mark(),
         }
         if self._venv is not None and self._obs is not None and not self._cut:
             size = self.spec.action_size

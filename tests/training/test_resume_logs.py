@@ -1,0 +1,164 @@
+"""A run stopped after a checkpoint and started again keeps each log record once (issue 81, item 4).
+
+The rerun redoes the updates made after the checkpoint, with the same numbers; ``metrics.jsonl`` is cut back to what
+it held at that checkpoint first, so the file ends as an uninterrupted run's does (apart from ``time`` and ``perf/``).
+Each test stops a real tiny run with an exception raised from a chosen update (what a kill does, except that the
+process lives on), runs the same command again, and compares its records with a run never stopped.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from coworld.agents.coworld import CoWorld
+from coworld.agents.dreamerv2 import DreamerV2
+from coworld.training.collect import collect_dreamerv2
+from coworld.training.logger import Logger, read_metrics
+from coworld.training.train import check_job, run_job
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+COLLECT = (
+    "device=cpu",
+    "train.prefill=100",
+    "train.eval_episodes=1",
+    "train.checkpoint_every=100",
+    "train.log_every=10",
+)
+"""50-step toy_reach episodes, 10 updates at once at step 100, then one every 10 steps; a checkpoint at step 100."""
+COWORLD = (
+    "device=cpu",
+    "train.prefill=50",
+    "train.pretrain_updates=2",
+    "train.train_every=5",
+    "train.eval_episodes=1",
+    "train.log_every=5",
+    "train.checkpoint_every=50",
+    "coworld.pretrain_steps=100",
+    "coworld.iterations=2",
+    "coworld.target_updates=2",
+    "coworld.source_updates=15",
+)
+"""13 pretraining source updates (a source checkpoint at step 50, after 3), then 2 iterations of 2 target and 15
+source updates, a record every 5 steps and every target update."""
+EVERY_UPDATE = ("coworld.target_updates=4", "train.log_every=1")
+"""An offline run of 8 updates, a record at every one and a checkpoint at every 4th."""
+
+
+class Killed(BaseException):
+    """Stands for the kill: nothing of the run catches it."""
+
+
+def kill_at(monkeypatch: pytest.MonkeyPatch, cls: type, method: str, call: int) -> None:
+    """``cls.method`` as it is, except that its ``call``-th call raises :class:`Killed` instead."""
+    original = getattr(cls, method)
+    made = {"n": 0}
+
+    def killing(self: Any, *args: Any, **kwargs: Any) -> Any:
+        made["n"] += 1
+        if made["n"] == call:
+            raise Killed
+        return original(self, *args, **kwargs)
+
+    monkeypatch.setattr(cls, method, killing)
+
+
+def records(logdir: Path) -> list[dict[str, Any]]:
+    """The run's records without what differs between two runs of one command (``time``, ``perf/`` rates)."""
+    return [{k: v for k, v in r.items() if k != "time" and "perf/" not in k} for r in read_metrics(logdir)]
+
+
+def job(dataset: Path, logdir: Path, algo: str, *extra: str) -> Any:
+    return check_job(
+        algo=algo,
+        source=None if algo == "dreamerv2" else "toy_reach",
+        target="toy_reach_shifted",
+        dataset=dataset,
+        preset="tiny",
+        logdir=logdir,
+        seed=0,
+        device="cpu",
+        overrides=[*COWORLD, *extra],
+    )
+
+
+def stopped_then_resumed(monkeypatch: pytest.MonkeyPatch, run: Any, cls: type, method: str, call: int) -> None:
+    with monkeypatch.context() as patch:
+        kill_at(patch, cls, method, call)
+        with pytest.raises(Killed):
+            run()
+    run()
+
+
+@pytest.mark.parametrize(
+    ("algo", "cls", "method", "call", "extra"),
+    [
+        # the checkpoint of update 4 of 8, then updates 5 and 6 logged before the kill in update 7
+        pytest.param("dreamerv2", DreamerV2, "train", 7, EVERY_UPDATE, id="offline"),
+        # source pretraining's checkpoint at step 50 (3 updates), records of steps 55-70 before the kill in update 7
+        pytest.param("coworld", CoWorld, "train_source", 7, (), id="coworld-pretraining"),
+        # the combined checkpoint after iteration 1's target phase, then 9 source updates logged, killed in the 10th
+        # (call 13 + 10)
+        pytest.param("coworld", CoWorld, "train_source", 23, (), id="coworld-source-phase", marks=pytest.mark.slow),
+        # the fine-tuned DreamerV2's target phase, after its 13 source updates: as the offline run
+        pytest.param(
+            "dreamerv2-finetune", DreamerV2, "train", 13 + 7, EVERY_UPDATE, id="finetune-target", marks=pytest.mark.slow
+        ),
+    ],
+)
+def test_a_resumed_run_logs_each_record_once(
+    tmp_path: Path,
+    toy_dataset_writer,
+    monkeypatch: pytest.MonkeyPatch,
+    algo: str,
+    cls: type,
+    method: str,
+    call: int,
+    extra: tuple[str, ...],
+) -> None:
+    dataset = toy_dataset_writer(tmp_path / "target.h5", "toy_reach_shifted", episodes=3)
+    whole = tmp_path / "whole"
+    run_job(job(dataset, whole, algo, *extra), progress=False)
+    stopped = tmp_path / "stopped"
+    stopped_then_resumed(
+        monkeypatch, lambda: run_job(job(dataset, stopped, algo, *extra), progress=False), cls, method, call
+    )
+    assert records(stopped) == records(whole)
+
+
+def test_a_resumed_collection_logs_each_record_once(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Killed in update 15 (step 140), before the episode after the checkpoint of step 100 ends: the rerun goes on
+    from that checkpoint exactly and logs steps 110-130 again."""
+
+    def collect(out: Path) -> None:
+        collect_dreamerv2(
+            "toy_reach", out, preset="tiny", device="cpu", progress=False, overrides=COLLECT, max_steps=200, resume=True
+        )
+
+    whole = tmp_path / "whole" / "toy_reach-medium_replay.h5"
+    collect(whole)
+    stopped = tmp_path / "stopped" / "toy_reach-medium_replay.h5"
+    stopped_then_resumed(monkeypatch, lambda: collect(stopped), DreamerV2, "train", 15)
+    run = "toy_reach-medium_replay.run"
+    assert records(stopped.with_name(run)) == records(whole.with_name(run))
+
+
+def test_the_logger_cuts_its_file_back_only_to_a_mark_of_that_file(tmp_path: Path) -> None:
+    with Logger(tmp_path, outputs=("jsonl",)) as logger:
+        logger.log({"a": 1.0}, 1)
+        mark = logger.mark()
+        logger.log({"a": 2.0}, 2)
+    with Logger(tmp_path, outputs=("jsonl",)) as logger:
+        logger.rewind(mark)
+        logger.log({"a": 3.0}, 2)
+    assert [(r["step"], r["a"]) for r in read_metrics(tmp_path)] == [(1, 1.0), (2, 3.0)]
+    other = tmp_path / "other"
+    with Logger(other, outputs=("jsonl",)) as logger:
+        logger.log({"b": 1.0}, 1)
+        logger.log({"b": 2.0}, 2)
+        logger.rewind(mark)  # a mark of another file (a pretraining copied from another run): left as it is
+        logger.rewind(None)  # a checkpoint from before marks were kept
+    assert len(read_metrics(other)) == 2
