@@ -18,7 +18,7 @@ from coworld.agents.factory import make_agent
 from coworld.data import open_dataset
 from coworld.envs import task_spec
 from coworld.training.job import CHECKPOINT_KINDS, MODEL_FREE, TrainJob
-from coworld.training.logger import Logger
+from coworld.training.logger import EMPTY_MARK, Logger
 from coworld.training.offline import OfflineSchedule, OfflineTrainer
 
 
@@ -85,6 +85,8 @@ def train_offline(job: TrainJob, *, device: torch.device, resumed: bool, progres
             phase="offline training" if job.source is None else "target phase",
         )
         restored = resumed and trainer.restore()
+        if not restored and job.source is None:  # killed before its first checkpoint: it starts over, its log too
+            logger.rewind(EMPTY_MARK)
         if job.source is not None and not restored:
             from coworld.training.finetune import consolidate_on_source, pretrain_on_source
 

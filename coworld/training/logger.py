@@ -32,6 +32,8 @@ CONSOLE_KEYS = ("eval/", "/loss", "perf/", "coworld/")
 
 METRICS_MARK = "metrics_mark"
 """The checkpoint entry holding :meth:`Logger.mark` (absent from checkpoints written before it was kept)."""
+EMPTY_MARK = {"bytes": 0, "sha256": hashlib.sha256(b"").hexdigest()}
+"""The mark of a file before any record: a run starting over from nothing rewinds to it."""
 
 
 class Logger:

@@ -98,6 +98,8 @@ def stopped_then_resumed(monkeypatch: pytest.MonkeyPatch, run: Any, cls: type, m
     [
         # the checkpoint of update 4 of 8, then updates 5 and 6 logged before the kill in update 7
         pytest.param("dreamerv2", DreamerV2, "train", 7, EVERY_UPDATE, id="offline"),
+        # killed in update 3, before the first checkpoint: the rerun starts over
+        pytest.param("dreamerv2", DreamerV2, "train", 3, EVERY_UPDATE, id="offline-before-any-checkpoint"),
         # source pretraining's checkpoint at step 50 (3 updates), records of steps 55-70 before the kill in update 7
         pytest.param("coworld", CoWorld, "train_source", 7, (), id="coworld-pretraining"),
         # the combined checkpoint after iteration 1's target phase, then 9 source updates logged, killed in the 10th
