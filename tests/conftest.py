@@ -188,7 +188,7 @@ class SmallDisk:
         if not self.mounted:
             self.size = 0
             return
-        with open(self.path / "filler", "wb") as f, contextlib.suppress(OSError):
+        with contextlib.suppress(OSError), open(self.path / "filler", "wb") as f:  # its close fails too
             while True:
                 f.write(b"\0" * 65536)
                 f.flush()

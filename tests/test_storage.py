@@ -280,3 +280,18 @@ def test_the_dreamerv2_collector_resumed_after_a_full_disk_is_the_uninterrupted_
         record, expected = data.metadata["collector"], reference.metadata["collector"]
         assert record["steps"] == data.num_steps == 300 and record.pop("run") != expected.pop("run")
         assert record == expected  # steps, updates, stop reason
+
+
+def test_a_full_disk_under_the_metrics_log_names_the_file(small_disk) -> None:
+    """A write to an open file names no file in its OSError; the log's own says which, so the line does too."""
+    from coworld.storage import os_error_text
+    from coworld.training.logger import Logger
+
+    disk = small_disk(1 * MiB)
+    with pytest.raises(OSError) as err, disk.limited(), Logger(disk.path / "run", outputs=("jsonl",)) as logger:
+        logger.log({"wm/loss": 1.0}, 1)
+        disk.fill()
+        for step in range(2, 10_000):  # past what the file object buffers; its close fails as well
+            logger.log({f"wm/term_{i}": float(i) for i in range(100)}, step)
+    assert err.value.filename == str(disk.path / "run" / "metrics.jsonl")
+    assert os_error_text(err.value).startswith(f"cannot write {disk.path / 'run' / 'metrics.jsonl'}: ")

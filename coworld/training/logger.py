@@ -71,8 +71,9 @@ class Logger:
         if self._jsonl is not None:
             record: dict[str, Any] = {"step": step, "unit": unit, "time": round(time.time() - self._start, 3)}
             record.update({k: (v if math.isfinite(v) else None) for k, v in scalars.items()})
-            self._jsonl.write(json.dumps(record) + "\n")
-            self._jsonl.flush()
+            with self._naming_the_log():
+                self._jsonl.write(json.dumps(record) + "\n")
+                self._jsonl.flush()
         if self._tb is not None:
             with self._tensorboard_writes():
                 for key, value in scalars.items():
@@ -114,10 +115,20 @@ class Logger:
                 self._tb.add_image(tag, image, step, dataformats="HWC")
                 self._tb.flush()
 
+    @contextlib.contextmanager
+    def _naming_the_log(self) -> Iterator[None]:
+        """A refused write to the open log (a full disk) as an OSError naming the file, which a file object's own
+        write and close errors do not."""
+        try:
+            yield
+        except OSError as err:
+            raise OSError(err.errno, err.strerror, str(self.logdir / "metrics.jsonl")) from None
+
     def close(self) -> None:
         if self._jsonl is not None:
-            self._jsonl.close()
-            self._jsonl = None
+            jsonl, self._jsonl = self._jsonl, None
+            with self._naming_the_log():
+                jsonl.close()
         if self._tb is not None:
             tb, self._tb = self._tb, None
             with self._tensorboard_writes():
