@@ -105,7 +105,8 @@ def test_the_default_is_table3_and_coworld_config_shows_a_version() -> None:
 
 @pytest.mark.parametrize("preset", ["cpu+later", "later-dmc", "cpu+later-dmc+release", "gpu"])
 def test_an_unknown_preset_or_version_is_one_line_naming_both_lists(preset: str) -> None:
-    with pytest.raises(ConfigError, match="choose one of: paper, cpu, tiny, cpu-dv2, optionally followed by \\+SETTINGS"):
+    listed = "choose one of: paper, cpu, tiny, cpu-dv2, optionally followed by \\+SETTINGS"
+    with pytest.raises(ConfigError, match=listed):
         make_config(preset)
     result = CliRunner().invoke(main, ["config", "--preset", preset])
     assert result.exit_code == 2 and len(result.output.strip().splitlines()) == 1, result.output

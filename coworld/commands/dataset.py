@@ -31,7 +31,8 @@ def dataset() -> None:
     type=Number(0, 1, min_open=True),
     default=0.99,
     show_default=True,
-    help="gamma of the value line: the critic's, actor_critic.discount (tiny, cpu and cpu-dv2 presets 0.99, paper 0.995).",
+    help="gamma of the value line: the critic's, actor_critic.discount"
+    " (tiny, cpu and cpu-dv2 presets 0.99, paper 0.995).",
 )
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as one JSON object.")
 def info(path: Path, discount: float, as_json: bool) -> None:
