@@ -109,7 +109,7 @@ COWORLD_WEIGHT = Range(0, 1e3)
 magnitude (the papers use 0.2 to 2); above it the target agent learns the term alone, and near float32's limit its
 losses overflow to inf."""
 MLP_LAYERS = Range(0, 100)
-"""Hidden layers of a plain MLP (no normalisation, no residual connections): one of 100,000 layers builds for minutes,
+"""Hidden layers of a plain MLP (no normalisation, no residual connections): one of 100,000 layers is slow to build,
 and none this deep learns."""
 
 
@@ -581,15 +581,15 @@ class Config:
     """'auto' (CUDA when available), 'cpu' or 'cuda'."""
     precision: Annotated[str, OneOf(("auto", "bf16", "fp32"))] = "auto"
     """'auto' (fp32 on every device), 'bf16' (autocast) or 'fp32'. Eager, the paper preset's update on a GPU is
-    bound by kernel launches, not arithmetic, and bf16 made it slower (1.19x); with ``compile`` bf16 is the fastest
-    (2.85x fp32 eager on an H200; benchmarks/RESULTS.md, "GPU"). 'auto' stays fp32, as bf16's learning over a run is
-    unmeasured."""
+    bound by kernel launches, not arithmetic, so bf16's casts make it slower; with ``compile``, which fuses the small
+    operations, bf16 is the fastest setting (benchmarks/RESULTS.md, "GPU"). 'auto' stays fp32, as bf16's learning
+    over a run is unmeasured."""
     compile: bool = False
     """torch.compile the reference world model's loss and the imagination rollout, each as one graph
     (``fullgraph``), and the networks acting calls. Shapes are static: a batch of another size compiles anew. The
-    compiled run takes the reference path (``train.backend``). On a GPU it pays for its compilation (minutes the
-    first time, seconds in a later process that finds inductor's cache on disk) within the first few thousand updates
-    of the paper preset, most with ``precision=bf16``; its cost and gain per device are in benchmarks/RESULTS.md."""
+    compiled run takes the reference path (``train.backend``). On a GPU it pays for its compilation (shorter in a later
+    process that finds inductor's cache on disk) within the first few thousand updates of the paper preset, most with
+    ``precision=bf16``; its cost and gain per device are in benchmarks/RESULTS.md."""
     compile_mode: Annotated[str, OneOf(("default", "max-autotune-no-cudagraphs"))] = "default"
     """torch.compile's ``mode`` where ``compile`` is on: 'max-autotune-no-cudagraphs' also times kernel choices.
     The modes that replay CUDA graphs ('reduce-overhead', 'max-autotune') are refused: their graphs overwrite the
@@ -601,15 +601,16 @@ class Config:
 
 
 CUDA_GRAPH_MODES = ("reduce-overhead", "max-autotune")
-"""torch.compile modes that replay CUDA graphs: on the paper preset's update they raised (an H200, torch 2.11)."""
+"""torch.compile modes that replay CUDA graphs, which :func:`validate` refuses: their graphs overwrite the world
+model's posterior states before imagination reads them (benchmarks/RESULTS.md, "GPU")."""
 
 PRESETS: dict[str, dict[str, Any]] = {
     # The paper's Table 3, for a GPU.
     "paper": {},
     # Real learning on 2 CPU cores: the tiny networks with an update every 2 env steps, on batch 8 x 16 (64 replayed
     # steps per env step). Batch 16 x 32 (a ratio of 256, the one the side-by-side comparison with a reference
-    # Dreamer matched) learned no better and held expert level less well on toy_reach, at 4x the update's cost
-    # (benchmarks/archive/speed-work-notes.md, "The actor collapse, fourth pass").
+    # Dreamer matched) learned no better and held expert level less well on toy_reach, with 4x the replayed steps per
+    # update (benchmarks/RESULTS.md, "The `cpu` preset on toy_reach").
     "cpu": {
         "world_model.cnn_depth": 8,
         # The GRU every result of this preset was measured with: no gate bias, LayerNorm epsilon 1e-5 (the paper
@@ -630,13 +631,12 @@ PRESETS: dict[str, dict[str, Any]] = {
         "actor_critic.actor_lr": 2e-4,
         "actor_critic.critic_lr": 3e-4,
         # DreamerV3's behaviour learning and heads on DreamerV2's world model (benchmarks/archive/
-        # speed-work-notes.md, "The actor collapse, third pass"): normalised returns, advantages through the dynamics,
-        # a critic that bootstraps from itself with the slow critic as a regulariser, two-hot reward head and critic
-        # that start at zero (so the actor keeps its spread until rewards differ), LayerNorm + SiLU heads, 1% unimix
-        # latents. The actor is
-        # DreamerV1's tanh-squashed normal, whose entropy counts the squash, so a mean pushed into tanh's flat tails
-        # costs entropy and can come back (DreamerV3's Normal(tanh(m), std) left one action dimension pinned at +1
-        # on 2 seeds in 4: "The actor collapse, fourth pass").
+        # speed-work-notes.md, "The actor collapse"): normalised returns, advantages through the dynamics, a critic
+        # that bootstraps from itself with the slow critic as a regulariser, two-hot reward head and critic that start
+        # at zero (so the actor keeps its spread until rewards differ), LayerNorm + SiLU heads, 1% unimix latents. The
+        # actor is DreamerV1's tanh-squashed normal, whose entropy counts the squash, so a mean pushed into tanh's flat
+        # tails costs entropy and can come back (DreamerV3's Normal(tanh(m), std) left one action dimension pinned at
+        # +1 on 2 seeds in 4).
         "actor_critic.actor_dist": "tanh_normal",
         "actor_critic.return_norm": True,
         "actor_critic.actor_entropy": 3e-4,

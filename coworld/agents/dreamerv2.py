@@ -73,8 +73,8 @@ class DreamerV2:
 
     ``device`` None uses ``config.device``; ``config.precision`` picks autocast; ``config.compile`` compiles the
     world model's loss and the imagination rollout whole, and the networks acting calls, with ``torch.compile``
-    (the first updates then wait for compilation: at the tiny sizes with batch 16 x 32, 313 s on this project's
-    2-core machine, 27 s once inductor's on-disk cache holds the graphs; benchmarks/RESULTS.md, issue 19).
+    (the first updates then wait for compilation, shorter in a later process that finds inductor's on-disk cache
+    holding the graphs; its cost per device: docs/performance.md).
     """
 
     def __init__(

@@ -14,10 +14,10 @@ F = TypeVar("F", bound=Callable[..., Any])
 
 
 DEFAULT_THREADS = 1
-"""torch's CPU threads when neither ``--threads`` nor ``OMP_NUM_THREADS`` says otherwise. Measured on 2 cores
-(benchmarks/RESULTS.md, "Threads"): a second thread makes a tiny update 1.4x faster on an idle machine but 2.6x
-slower when another process holds a core (OpenMP threads wait for each other at every parallel region), and
-``OMP_WAIT_POLICY=PASSIVE`` avoids the collapse only by losing the gain; one thread never falls off that cliff."""
+"""torch's CPU threads when neither ``--threads`` nor ``OMP_NUM_THREADS`` says otherwise. A second thread speeds
+a tiny update up on an idle machine but more than halves its speed when another process holds a core (OpenMP
+threads wait for each other at every parallel region), and ``OMP_WAIT_POLICY=PASSIVE`` avoids the collapse only by
+losing the gain; one thread never falls off that cliff (docs/performance.md; benchmarks/RESULTS.md, "Threads")."""
 
 
 MAX_THREADS = 1024

@@ -10,11 +10,11 @@ leaves the file as the last commit left it. Before each episode the writer asks 
 (:func:`~coworld.storage.room_problem`), so a full disk is usually met before anything is written. A write that fails
 anyway (another process filled the disk meanwhile) must fail at once: HDF5 keeps chunks in a per-dataset cache that
 it writes when the dataset is closed, and h5py cannot raise from the deallocator of a short-lived dataset object, so
-a failed write used to print only "Exception ignored" while the counters were committed over data that never reached
-the disk. So the chunk cache is off (each write reaches the file in the call that makes it, and raises there), and
-the datasets stay open for the writer's life. After a refused write the writer touches the file no more (even
-shrinking it back can drop committed chunks from HDF5's index) and never marks it complete; a resumed writer drops
-the uncommitted rows.
+with the cache on, a failed write would print only "Exception ignored" while the counters were committed over data
+that never reached the disk. So the chunk cache is off (each write reaches the file in the call that makes it, and
+raises there), and the datasets stay open for the writer's life. After a refused write the writer touches the file
+no more (even shrinking it back can drop committed chunks from HDF5's index) and never marks it complete; a resumed
+writer drops the uncommitted rows.
 """
 
 from __future__ import annotations

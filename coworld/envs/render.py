@@ -6,22 +6,19 @@ closed: gymnasium's own Meta-World renderer draws into whatever context happens 
 environment (which frees its context) left the others rendering all-zero frames.
 
 Render quality (the ``render_quality`` override). "diff" is the mean absolute pixel difference (0-255 scale)
-to the simulator's own settings, over states of a random-policy episode, 64 x 64 frames, llvmpipe (software EGL)
-on 2 CPU cores:
+to the simulator's own settings, over states of a random-policy episode, 64 x 64 frames, llvmpipe (software EGL):
 
 * ``full``: the model's own settings (4x MSAA, 2048/4096 shadow map, shadows, reflections).
 * ``standard`` (default): no MSAA, 512 shadow map. Diff 1.35 walker, 0.85 cheetah, 4.0 window-close (MSAA
-  smooths thin edges; the shadow map size alone barely matters: 512, 256 and 128 give the same speed and look).
+  smooths thin edges; the shadow map size alone barely matters: 512, 256 and 128 cost and look the same).
 * ``fast``: ``standard`` without shadows and reflections. Diff 8.5 walker, 1.5 cheetah, 10.8 window-close:
   without shadows the spot light's dark floor band disappears (mostly floor lighting; the body reads the same).
 
 RoboDesk's scene has three shadow-casting lights: diff 6.2 for ``standard`` and 40 for ``fast`` (one state of a
 random episode of push_button; ``full`` there equals RoboDesk's own frames).
 
-Render-only frames/s measured for full / standard / fast (machine shared with other work, so only the ratios
-mean much): walker 31 / 121 / 754, cheetah 28 / 174 / 849, window-close 9 / 26 / 141. ``standard`` keeps the look
-of the paper's frames at 3-6x the speed of ``full``; ``fast`` is another 3-6x but changes the image visibly. Use
-one quality for a dataset and for every policy evaluated on it.
+``standard`` keeps the look of the paper's frames at a fraction of ``full``'s rendering cost; ``fast`` is cheaper
+again but changes the image visibly. Use one quality for a dataset and for every policy evaluated on it.
 """
 
 from __future__ import annotations

@@ -323,9 +323,8 @@ def toy_table() -> SweepSpec:
     offline DreamerV2, its variants and LOMPO the same 1,500 updates (V-D4RL's penalised one and LOMPO spend the
     first 750 on their world model, the fine-tuned ones first pretrain in the source as CoWorld's source does),
     CURL, CURL+CQL and DrQ+BC 3,000 of their cheaper updates. CoWorld's source pretrains for 2,000 environment
-    steps and makes 100 updates per iteration. Each run ends with a 10-episode evaluation. Measured on 2 shared CPU
-    cores (benchmarks/archive/toy-tables.md), before DrQ+BC, LOMPO and the three DreamerV2 variants joined: one seed
-    of the four others took about 16 CPU-minutes, CoWorld's run 7 of them.
+    steps and makes 100 updates per iteration. Each run ends with a 10-episode evaluation (the table's runs and their
+    cost: benchmarks/archive/toy-tables.md).
     """
     return SweepSpec(
         pairs=(("toy_reach", "toy_reach_shifted"),),
@@ -367,8 +366,8 @@ TOY_CPU_OVERRIDES = tuple(
 )
 """The ``toy-cpu`` schedule on the ``cpu`` preset: its world-model agents as the preset has them (source pretrain
 4,000 env steps, 4 iterations of 500 target updates); the model-free baselines at the ``toy`` table's sizes, networks
-and batch (32 transitions: the ``cpu`` preset's 512, the paper's, made one CURL update on these small networks cost
-0.7 s, 38 minutes a run)."""
+and batch (32 transitions: the ``cpu`` preset's 512, the paper's, made a CURL run on these small networks many
+times longer; benchmarks/archive/toy-tables.md)."""
 
 
 def toy_cpu_table() -> SweepSpec:
@@ -377,8 +376,8 @@ def toy_cpu_table() -> SweepSpec:
     (:data:`TOY_CPU_DATA`).
 
     Where :func:`toy_table` tests the pipeline with agents that learn little, this table is the transfer result: on
-    the ``cpu`` preset DreamerV2 reads the dot in toy_reach (benchmarks/archive/speed-work-notes.md, "The actor
-    collapse, third pass"), so CoWorld's source knows what the goal is worth.
+    the ``cpu`` preset DreamerV2 reads the dot in toy_reach (benchmarks/RESULTS.md, "The `cpu` preset on
+    toy_reach"), so CoWorld's source knows what the goal is worth.
     """
     return dataclasses.replace(
         toy_table(), preset="cpu", overrides=TOY_CPU_OVERRIDES, data=TOY_CPU_DATA, eval_episodes=20
