@@ -14,6 +14,7 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass
 
+from coworld.algorithms import Algorithm, algorithm
 from coworld.config import Config
 from coworld.errors import ConfigError
 
@@ -25,7 +26,6 @@ IMAGE = 64 * 64 * 3
 """Values of one frame (the size every model here takes)."""
 ENV_WORKER = 50 * 2**20
 """Memory of one environment worker process (a simulator and its renderer)."""
-MODEL_FREE = ("curl", "curl-cql", "drq-bc")
 
 
 @dataclass(frozen=True)
@@ -39,17 +39,18 @@ class Term:
 def estimate(algo: str, config: Config) -> list[Term]:
     """The dominant allocations of a run of ``algo`` (``coworld train --algo``, or ``dreamerv2`` for the collector)
     with ``config``, largest first."""
-    terms = _model_free(config, algo) if algo in MODEL_FREE else _dreamer(config, algo)
+    record = algorithm(algo)
+    terms = _dreamer(config, record) if record.world_model else _model_free(config, record)
     terms.append(Term(config.train.envs * ENV_WORKER, "train.envs"))
     return sorted(terms, key=lambda t: t.bytes, reverse=True)
 
 
-def _dreamer(config: Config, algo: str) -> list[Term]:
+def _dreamer(config: Config, record: Algorithm) -> list[Term]:
     wm, ac, train = config.world_model, config.actor_critic, config.train
     latent = wm.stoch * wm.classes
     feat = wm.deter + latent
     embed = wm.cnn_depth * 32 * 2 * 2  # the encoder's last feature map, flattened
-    agents = 2 if algo == "coworld" else 1
+    agents = 2 if record.collaborative else 1
     batch_key = "train.batch_size" if train.batch_size >= train.seq_len else "train.seq_len"
     terms = [
         Term(agents * TRAINED * 3 * wm.deter * (wm.hidden + wm.deter), "world_model.deter"),  # the GRU cell
@@ -63,13 +64,13 @@ def _dreamer(config: Config, algo: str) -> list[Term]:
         # imagination: every start state rolled out for the horizon
         Term(FLOAT * train.batch_size * train.seq_len * ac.horizon * (feat + ac.units), "actor_critic.horizon"),
     ]
-    if algo in ("dreamerv2-penalty", "lompo"):
+    own = getattr(config, record.section) if record.section else None
+    if hasattr(own, "ensemble"):  # an ensemble of dynamics heads (the penalised DreamerV2, LOMPO)
         per_head = wm.deter * wm.hidden + wm.hidden * latent
-        section = "penalty" if algo == "dreamerv2-penalty" else "lompo"
-        terms.append(Term(TRAINED * getattr(config, section).ensemble * per_head, f"{section}.ensemble"))
-    if algo == "lompo":
+        terms.append(Term(TRAINED * own.ensemble * per_head, f"{record.section}.ensemble"))
+    if record.section == "lompo":
         terms += _lompo(config, feat)
-    if algo == "dreamerv2-finetune-ewc":  # the source weights and their Fisher information, beside the networks,
+    if record.section == "ewc":  # the source weights and their Fisher information, beside the networks,
         # and each Fisher batch's gradients, held until their mean is taken
         world_model = 3 * wm.deter * (wm.hidden + wm.deter) + 16 * 42 * wm.cnn_depth**2
         terms.append(Term(FLOAT * 2 * world_model, "world_model.deter"))
@@ -90,11 +91,11 @@ def _lompo(config: Config, feat: int) -> list[Term]:
     ]
 
 
-def _model_free(config: Config, algo: str) -> list[Term]:
-    c = config.drqbc if algo == "drq-bc" else config.curl
+def _model_free(config: Config, record: Algorithm) -> list[Term]:
+    section = str(record.section)
+    c = getattr(config, section)
     side = 64 + 2 * c.pad
-    stack = f"{'drqbc' if algo == 'drq-bc' else 'curl'}.frame_stack"
-    section = stack.split(".")[0]
+    stack = f"{section}.frame_stack"
     channels = 3 * c.frame_stack
     conv = c.num_filters * 9 * (channels + (c.num_layers - 1) * c.num_filters)
     flat = c.num_filters * 35 * 35  # the encoder's output at most (a 3 x 3 stride-2 convolution of 64 + 2 pad)

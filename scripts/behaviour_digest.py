@@ -66,7 +66,7 @@ def main() -> None:
     parser.add_argument("--dir", type=Path, required=True, help="an empty or new folder for the runs")
     parser.add_argument("--algos", default="", help="comma-separated; default every algorithm and the collector")
     args = parser.parse_args()
-    from coworld.training.job import ALGOS, NEEDS_SOURCE
+    from coworld.algorithms import ALGOS, algorithm
 
     chosen = args.algos.split(",") if args.algos else ["collect", *ALGOS]
     args.dir.mkdir(parents=True, exist_ok=True)
@@ -107,7 +107,7 @@ def main() -> None:
             )
             run = run.with_name(f"{algo}.run")  # the collector's agent sits beside its dataset
         else:
-            source = ["--source", "toy_reach"] if algo in NEEDS_SOURCE else []
+            source = ["--source", "toy_reach"] if algorithm(algo).needs_source else []
             schedule = [arg for key in SCHEDULE for arg in ("--set", key)]
             cli(
                 "train",

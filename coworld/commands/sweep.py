@@ -7,10 +7,10 @@ import sys
 import click
 
 from coworld import interrupt
+from coworld.algorithms import ALGOS
 from coworld.commands.options import MAX_THREADS, Number, capped_jobs, count_type, input_path, output_folder
 from coworld.errors import CoworldError
 from coworld.sweep.grid import MAX_SEEDS, TABLES
-from coworld.training.train import ALGOS
 
 
 @click.command()

@@ -6,10 +6,10 @@ from pathlib import Path
 
 import click
 
+from coworld import algorithms
 from coworld.commands.options import SEED, count_type, output_folder
 from coworld.envs.registry import PAIRS, TASKS, task_spec
 from coworld.errors import ConfigError
-from coworld.training.train import ALGOS, NEEDS_SOURCE
 
 
 @click.command("tasks")
@@ -53,9 +53,9 @@ def tasks() -> None:
     width = max(len(source) for source, _ in PAIRS)
     for source, target in PAIRS:
         click.echo(f"  {source.ljust(width)} -> {target}")
-    offline = [algo for algo in ALGOS if algo not in NEEDS_SOURCE]
+    online, offline = algorithms.names(needs_source=True), algorithms.names(needs_source=False)
     click.echo("\nalgorithms (`coworld train --algo`):")
-    click.echo(f"  need --source (they also learn online in the source task): {', '.join(NEEDS_SOURCE)}")
+    click.echo(f"  need --source (they also learn online in the source task): {', '.join(online)}")
     click.echo(f"  learn from the target dataset alone: {', '.join(offline)}")
 
 

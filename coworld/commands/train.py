@@ -8,9 +8,9 @@ from pathlib import Path
 import click
 
 from coworld import interrupt
+from coworld.algorithms import ALGOS, algorithm, names
 from coworld.commands.options import SEED, input_path, output_folder, threads_option
 from coworld.errors import StorageError
-from coworld.training.train import ALGOS, NEEDS_SOURCE
 
 RESUME = "rerun the same command to resume"
 
@@ -20,9 +20,9 @@ RESUME = "rerun the same command to resume"
 @click.option(
     "--source",
     default=None,
-    help=f"Online source task ({', '.join(NEEDS_SOURCE)} only; the others ignore it), e.g. walker_walk; for coworld"
-    " also several, A,B,... or A+B+... (as sweep pairs and run folder names write them): it pretrains each and keeps"
-    " the one whose latents lie closest to the target's.",
+    help=f"Online source task ({', '.join(names(needs_source=True))} only; the others ignore it), e.g. walker_walk;"
+    " for coworld also several, A,B,... or A+B+... (as sweep pairs and run folder names write them): it pretrains each"
+    " and keeps the one whose latents lie closest to the target's.",
 )
 @click.option(
     "--dataset",
@@ -101,7 +101,7 @@ def train(
     from coworld.storage import check_writable
     from coworld.training.train import check_job, run_job
 
-    if source is not None and algo not in NEEDS_SOURCE:
+    if source is not None and not algorithm(algo).needs_source:
         click.echo(f"note: --source is not used by {algo}: it learns from the target dataset alone", err=True)
         source = None
     job = check_job(
@@ -121,7 +121,7 @@ def train(
     check_writable(job.logdir, "--logdir")
     for warning in job.warnings:
         click.echo(f"warning: {warning}", err=True)
-    kind = f"with source {source}" if algo in NEEDS_SOURCE else "offline on the dataset alone"
+    kind = f"with source {source}" if algorithm(algo).needs_source else "offline on the dataset alone"
     click.echo(f"train {algo} on {job.dataset} ({target}, {kind}); run folder {job.logdir}")
     if job.resume and (job.logdir / "checkpoint.pt").exists():
         click.echo(f"resuming from {job.logdir / 'checkpoint.pt'}")

@@ -19,7 +19,7 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
-from coworld.report.results import ONLINE_ALGO, RunResult, learning_curve, load_results, shown_path, to_csv
+from coworld.report.results import RunResult, learning_curve, load_results, shown_path, to_csv
 from coworld.storage import check_writable, write_text_atomically
 from coworld.text import count
 
@@ -47,7 +47,7 @@ def _run_count(results: list[RunResult]) -> int:
 
 def _collectors(results: list[RunResult]) -> list[RunResult]:
     """The online DreamerV2 agents of ``coworld collect --policy dreamerv2`` that have no final evaluation."""
-    return [r for r in results if r.algo == ONLINE_ALGO and r.final_return is None]
+    return [r for r in results if r.online and r.final_return is None]
 
 
 def write_report(root: str | Path, out: str | Path | None = None) -> Report:

@@ -30,7 +30,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from coworld.report.results import ONLINE_ALGO, RunResult, read_run_metrics
+from coworld.algorithms import is_collaborative
+from coworld.report.results import RunResult, read_run_metrics
 from coworld.report.tables import label_order
 
 ALIGN = "target/coworld/align_kl"
@@ -88,7 +89,7 @@ def _value(s: Series | None) -> str:
 
 def diagnostics_table(results: Sequence[RunResult]) -> str:
     """A markdown table, one row per CoWorld run; '' when there is none."""
-    coworld = [r for r in results if r.algo == "coworld"]
+    coworld = [r for r in results if is_collaborative(r.algo)]
     order = {label: i for i, label in enumerate(label_order(coworld))}
     runs = sorted(coworld, key=lambda r: (r.pair, order[r.label], r.seed))
     if not runs:
@@ -148,7 +149,7 @@ def on_target(records: Sequence[Mapping[str, Any]], name: str) -> Series | None:
 
 def target_table(results: Sequence[RunResult], terms: Sequence[tuple[str, str]]) -> str:
     """A markdown table of ``terms`` (:func:`on_target`), one row per run that logged any; '' when there is none."""
-    runs = [r for r in results if r.algo != ONLINE_ALGO]
+    runs = [r for r in results if not r.online]
     order = {label: i for i, label in enumerate(label_order(runs))}
     rows = []
     for r in sorted(runs, key=lambda r: (r.target, order[r.label], r.seed)):

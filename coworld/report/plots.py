@@ -18,9 +18,10 @@ from typing import Any
 
 import numpy as np
 
+from coworld.algorithms import is_collaborative
 from coworld.errors import CoworldError
 from coworld.report.diagnostics import cap_curve, target_curve
-from coworld.report.results import ONLINE_ALGO, RunResult, learning_curve, read_run_metrics, wall_clock_curve
+from coworld.report.results import RunResult, learning_curve, read_run_metrics, wall_clock_curve
 from coworld.report.tables import label_order
 from coworld.text import count
 
@@ -62,7 +63,7 @@ def curve_runs(results: Sequence[RunResult], target: str) -> tuple[list[RunResul
     """The runs whose curves share a figure of ``target``, and its x-axis: the training runs against target updates;
     where there are none, the online DreamerV2 runs of ``coworld collect`` against env steps (they count those)."""
     runs = [r for r in results if r.target == target]
-    trained = [r for r in runs if r.algo != ONLINE_ALGO]
+    trained = [r for r in runs if not r.online]
     return (trained, "target updates") if trained else (runs, "env steps")
 
 
@@ -151,7 +152,7 @@ def ablation_bars(results: Sequence[RunResult], path: Path) -> bool:
     """Figure 4(a): final return (mean ± std over seeds) of each CoWorld variant, per pair, with the other
     algorithms as configured on the same target as dashed lines (their mean)."""
     finished = [r for r in results if r.final_return is not None]
-    runs = [r for r in finished if r.algo == "coworld"]
+    runs = [r for r in finished if is_collaborative(r.algo)]
     if len({r.variant for r in runs}) < 2:
         return False
     targets = list(dict.fromkeys(r.target for r in runs))
@@ -163,7 +164,7 @@ def ablation_bars(results: Sequence[RunResult], path: Path) -> bool:
         x = np.arange(len(labels))
         colors = ["C0" if label == "coworld" else "C7" for label in labels]
         ax.bar(x, [np.mean(v) for v in values], yerr=[np.std(v) for v in values], capsize=4, color=colors)
-        others = [r for r in finished if r.target == target and r.algo != "coworld" and not r.variant]
+        others = [r for r in finished if r.target == target and not is_collaborative(r.algo) and not r.variant]
         for i, label in enumerate(label_order(others)):
             mean = np.mean([r.final_return for r in others if r.label == label])
             ax.axhline(mean, color=f"C{i + 1}", linestyle="--", linewidth=1, label=label)
@@ -200,7 +201,7 @@ def cap_curves(results: Sequence[RunResult], path: Path) -> bool:
     over the run's zeta (dashed), and the uncapped critics, offline DreamerV2's and those of CoWorld runs without the
     cap (black and greys, one per label), each mean over seeds at each log; False (nothing written) when no CoWorld
     run logged its critics. Past ten CoWorld labels, colours repeat with markers (squares, then triangles)."""
-    runs = [r for r in results if r.algo == "coworld"]
+    runs = [r for r in results if is_collaborative(r.algo)]
     curves = {}
     for r in runs:
         curve = cap_curve(read_run_metrics(Path(r.run_dir)), r.zeta) if r.zeta else []
@@ -211,7 +212,7 @@ def cap_curves(results: Sequence[RunResult], path: Path) -> bool:
         return False
     uncapped = {}
     for r in results:
-        if r.target not in targets or not (r.algo == "dreamerv2" or (r.algo == "coworld" and r.zeta is None)):
+        if r.target not in targets or not (r.algo == "dreamerv2" or (is_collaborative(r.algo) and r.zeta is None)):
             continue
         curve = target_curve(read_run_metrics(Path(r.run_dir)), "critic/value")  # an uncapped critic
         if curve:

@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from coworld import envs
+from coworld.algorithms import is_collaborative
 from coworld.errors import CoworldError, UnknownTaskError
 from coworld.report.arms import ABLATION_SWITCHES, Settings, arm_variants, run_settings
 from coworld.report.paper import Published, published
@@ -94,6 +95,11 @@ class RunResult:
         """The column of the run in tables: algorithm, then variant."""
         return f"{self.algo} ({self.variant})" if self.variant else self.algo
 
+    @property
+    def online(self) -> bool:
+        """The online DreamerV2 agent of a collection (:data:`ONLINE_ALGO`): a reference row, not a trained run."""
+        return self.algo == ONLINE_ALGO
+
 
 CSV_COLUMNS = (
     "pair",
@@ -147,7 +153,7 @@ def target_eval_return(record: Mapping[str, Any], algo: str) -> float | None:
     value = record.get("eval/return")
     if not _is_step(value):
         return None
-    if algo == "coworld" and "eval/value_estimate" not in record:
+    if is_collaborative(algo) and "eval/value_estimate" not in record:
         return None
     return float(value)
 
@@ -170,7 +176,9 @@ def _updates(records: list[dict[str, Any]], algo: str) -> int | None:
         for r in records
         if not str(r.get("unit", "")).startswith("source_")
         and (
-            algo != "coworld" or any(key.startswith("target/") for key in r) or target_eval_return(r, algo) is not None
+            not is_collaborative(algo)
+            or any(key.startswith("target/") for key in r)
+            or target_eval_return(r, algo) is not None
         )
     ]
     return max(steps) if steps else None
@@ -214,7 +222,7 @@ def _variant(run_dir: Path, algo: str, config: Mapping[str, Any], problems: list
     if record is not None:
         source = record.get("source")
         return str(record.get("variant", "")), source if isinstance(source, str) else None
-    if algo != "coworld":
+    if not is_collaborative(algo):
         return "", None
     switches = config.get("coworld")
     if not isinstance(switches, dict):
@@ -513,7 +521,7 @@ def _load(run_dir: Path, qualities: dict[str, str | None] | None) -> tuple[RunRe
         value_source=capping,
         reward_estimate=predicted,
         reward_true=arrived,
-        zeta=_zeta(config) if algo == "coworld" else None,
+        zeta=_zeta(config) if is_collaborative(algo) else None,
         normalized_score=normalized(target, final),
         updates=_updates(records, algo),
         source_steps=source_steps(records),

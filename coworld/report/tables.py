@@ -18,21 +18,9 @@ from typing import Any
 
 import numpy as np
 
+from coworld.algorithms import by_column
 from coworld.errors import CoworldError
 from coworld.report.results import RunResult
-
-ALGO_ORDER = (
-    "curl",
-    "curl-cql",
-    "drq-bc",
-    "dreamerv2",
-    "dreamerv2-penalty",
-    "lompo",
-    "dreamerv2-finetune",
-    "dreamerv2-finetune-ewc",
-    "coworld",
-)
-"""Columns in the paper's order (model-free, then model-based, CoWorld last); other algorithms follow."""
 
 
 def require_scipy() -> Any:
@@ -95,15 +83,10 @@ def iqm_interval(
     return Interval(point, float(ci.low), float(ci.high), len(everything), len(tasks))
 
 
-def _order(labels: Iterable[str]) -> list[str]:
-    labels = set(labels)
-    known = [a for a in ALGO_ORDER if a in labels]
-    return known + sorted(labels - set(known))
-
-
 def label_order(results: Iterable[RunResult]) -> list[str]:
-    """The runs' labels in the tables' order: the algorithms as :data:`ALGO_ORDER` lists them, each followed by its
-    variants in natural order (an algorithm's label first, then "coworld (zeta3)" before "coworld (zeta10)")."""
+    """The runs' labels in the tables' order: the algorithms in their records' column order
+    (:func:`coworld.algorithms.by_column`), each followed by its variants in natural order (an algorithm's
+    label first, then "coworld (zeta3)" before "coworld (zeta10)")."""
     results = list(results)
 
     def natural(label: str) -> list[Any]:
@@ -111,7 +94,7 @@ def label_order(results: Iterable[RunResult]) -> list[str]:
 
     return [
         label
-        for algo in _order({r.algo for r in results})
+        for algo in by_column({r.algo for r in results})
         for label in sorted({r.label for r in results if r.algo == algo}, key=natural)
     ]
 
@@ -259,7 +242,7 @@ def paper_table(results: Sequence[RunResult]) -> str:
     lines = ["| pair | algorithm | dataset | ours | paper | paper's table |", "|---|---|---|---:|---:|---|"]
     for target in _rows(finished):
         here = [r for r in finished if r.target == target]
-        for algo in _order({r.algo for r in here}):
+        for algo in by_column({r.algo for r in here}):
             runs = [r for r in here if r.algo == algo]
             ours = [float(r.final_return) for r in runs]  # type: ignore[arg-type]
             number = runs[0].paper

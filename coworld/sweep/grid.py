@@ -38,13 +38,14 @@ from pathlib import Path
 from typing import Any
 
 from coworld import envs
+from coworld.algorithms import ALGOS, algorithm, names
 from coworld.budget import check_memory
 from coworld.config import DREAMERV2_BEHAVIOUR, PRESETS, make_config, settings_overrides
 from coworld.errors import ConfigError, CoworldError
 from coworld.report import paper
 from coworld.report.paper import PaperTable
 from coworld.training.collect import TRAINED_QUALITIES as QUALITIES
-from coworld.training.train import ALGOS, NEEDS_SOURCE, check_config, check_source, parse_sources
+from coworld.training.train import check_config, check_source, parse_sources
 
 COLLECT_POLICIES = ("dreamerv2", "random")
 SEED_MAX = 2**32 - 1
@@ -200,7 +201,7 @@ class SweepSpec:
             for algo in self.algos:
                 for variant in self.variants_of(algo):
                     for seed in self.seeds:
-                        run = Run(algo, source if algo in NEEDS_SOURCE else None, target, seed, variant)
+                        run = Run(algo, source if algorithm(algo).needs_source else None, target, seed, variant)
                         if run not in seen:
                             seen.add(run)
                             runs.append(run)
@@ -213,8 +214,9 @@ class SweepSpec:
     def variants_of(self, algo: str) -> list[str]:
         """The variant names ``algo`` runs in: CoWorld's those of two entries; every algorithm those naming it, and a
         baseline also ''."""
-        named = [name for name, _, *algos in self.variants if algo in (algos[0] if algos else ("coworld",))]
-        return named if algo == "coworld" else list(dict.fromkeys(["", *named]))
+        default = names(collaborative=True)  # a variant naming no algorithm is CoWorld's
+        named = [name for name, _, *algos in self.variants if algo in (algos[0] if algos else default)]
+        return named if algorithm(algo).collaborative else list(dict.fromkeys(["", *named]))
 
     def variant_overrides(self, name: str) -> tuple[str, ...]:
         """The ``--set`` of variant ``name`` ('' as configured)."""
@@ -229,7 +231,9 @@ class SweepSpec:
         tasks and seed, a config apart only in the target phases' settings (:mod:`coworld.training.pretrained`)."""
         from coworld.training.pretrained import pretraining_difference
 
-        runs = [run for run in self.runs() if run.algo == "coworld" and run.source and "+" not in run.source]
+        runs = [
+            run for run in self.runs() if algorithm(run.algo).collaborative and run.source and "+" not in run.source
+        ]
         configs = {run: make_config(self.preset, [*self.run_overrides(run), f"seed={run.seed}"]) for run in runs}
 
         def shares(a: Run, b: Run) -> bool:
@@ -627,8 +631,8 @@ def check_pair(source: str, target: str, algos: Sequence[str]) -> None:
         envs.task_spec(target)
         if target in sources:
             raise CoworldError(f"source {target} is the target itself; pair the target with another domain")
-        for algo in (a for a in algos if a in NEEDS_SOURCE):
-            if len(sources) > 1 and algo != "coworld":
+        for algo in (a for a in algos if algorithm(a).needs_source):
+            if len(sources) > 1 and algorithm(algo).source != "any":
                 raise CoworldError(
                     f"{algo} takes one source; several ({source}) are CoWorld's automatic source choice: drop {algo}"
                     " from --algos or give this pair one source"

@@ -14,17 +14,19 @@ from typing import Any
 
 import torch
 
-from coworld.agents.factory import make_agent
+from coworld.agents.factory import import_named, make_agent
+from coworld.algorithms import algorithm
 from coworld.data import open_dataset
 from coworld.envs import task_spec
-from coworld.training.job import CHECKPOINT_KINDS, MODEL_FREE, TrainJob
+from coworld.training.job import TrainJob
 from coworld.training.logger import EMPTY_MARK, Logger
 from coworld.training.offline import OfflineSchedule, OfflineTrainer
 
 
 def schedule_for(job: TrainJob) -> OfflineSchedule:
-    config = job.config
-    if job.algo not in MODEL_FREE:
+    """The run's length and cadence, from the config section its record names (:attr:`Algorithm.schedule`)."""
+    config, section = job.config, algorithm(job.algo).schedule
+    if section == "coworld":  # CoWorld's target updates, a checkpoint at the end of each iteration's worth
         per_iteration = config.coworld.target_updates
         return OfflineSchedule(
             updates=config.coworld.iterations * per_iteration,
@@ -33,7 +35,7 @@ def schedule_for(job: TrainJob) -> OfflineSchedule:
             eval_episodes=config.train.eval_episodes,
             checkpoint_every=per_iteration,
         )
-    c = config.drqbc if job.algo == "drq-bc" else config.curl
+    c = getattr(config, section)
     return OfflineSchedule(
         updates=c.updates,
         log_every=c.log_every,
@@ -44,34 +46,27 @@ def schedule_for(job: TrainJob) -> OfflineSchedule:
 
 
 def train_offline(job: TrainJob, *, device: torch.device, resumed: bool, progress: bool = True) -> dict[str, Any]:
-    config = job.config
+    config, record = job.config, algorithm(job.algo)
     action_size = task_spec(job.target).action_size
     agent = make_agent(job.algo, config=config, action_size=action_size, device=device)
     dataset = open_dataset(job.dataset)
-    if job.algo not in MODEL_FREE:
+    if record.sampler is None:
 
         def make_sampler(seed: int):
             return iter(dataset.sampler(config.train.batch_size, config.train.seq_len, seed=seed))
 
-        discount = config.lompo.discount if job.algo == "lompo" else config.actor_critic.discount
-    elif job.algo == "drq-bc":
-        from coworld.agents.drq_bc import make_sampler as drq_sampler
-
-        def make_sampler(seed: int):
-            return iter(drq_sampler(dataset, config, seed))
-
-        discount = config.drqbc.discount
     else:
-        from coworld.agents.curl import make_sampler as curl_sampler
+        sampler = import_named(record.sampler)
 
         def make_sampler(seed: int):
-            return iter(curl_sampler(dataset, config, seed))
+            return iter(sampler(dataset, config, seed))
 
-        discount = config.curl.discount
+    section, key = record.discount.split(".")
+    discount = getattr(getattr(config, section), key)
     with Logger(job.logdir) as logger:
         trainer = OfflineTrainer(
             agent=agent,
-            kind=CHECKPOINT_KINDS[job.algo],
+            kind=record.checkpoint,
             task=job.target,
             config=config,
             schedule=schedule_for(job),
@@ -91,7 +86,7 @@ def train_offline(job: TrainJob, *, device: torch.device, resumed: bool, progres
             from coworld.training.finetune import consolidate_on_source, pretrain_on_source
 
             pretrain_on_source(agent, job, logger=logger, progress=progress)
-            if job.algo == "dreamerv2-finetune-ewc":
+            if hasattr(agent, "consolidate"):  # EWC: the source weights and their Fisher information
                 consolidate_on_source(agent, job, logger=logger)
         result = trainer.run(progress=progress)
     dataset.close()

@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from coworld.algorithms import DREAMER_KNOBS, REGISTRY
 from coworld.errors import NonFiniteCheckpoint, TrainingDiverged
 
 LOSSES = {
@@ -36,36 +37,14 @@ LOSSES = {
 }
 """What a loss is called by its metric group (``wm/loss``, ``source/actor/loss``)."""
 
-_DREAMER = {"wm": ("world_model.lr",), "actor": ("actor_critic.actor_lr",), "critic": ("actor_critic.critic_lr",)}
-_CURL = {
-    "curl": ("curl.encoder_lr",),
-    "actor": ("curl.actor_lr",),
-    "critic": ("curl.critic_lr",),
-    "alpha": ("curl.alpha_lr",),
-}
-KNOBS: dict[str, dict[str, tuple[str, ...]]] = {
-    "dreamerv2-online": _DREAMER,
-    "dreamerv2-offline": _DREAMER,
-    "dreamerv2-finetune": _DREAMER,
-    "dreamerv2-finetune-ewc": {group: (*keys, "ewc.weight") for group, keys in _DREAMER.items()},
-    "dreamerv2-penalty": {
-        **_DREAMER,
-        "actor": ("actor_critic.actor_lr", "penalty.weight"),
-        "critic": ("actor_critic.critic_lr", "penalty.weight"),
-    },
-    "coworld": {
-        **_DREAMER,
-        "wm": ("world_model.lr", "coworld.beta2"),
-        "critic": ("actor_critic.critic_lr", "coworld.alpha"),
-    },
-    "coworld-source": {**_DREAMER, "policy_value": ("actor_critic.critic_lr",), "coworld": ("world_model.lr",)},
-    "lompo": {"wm": ("world_model.lr",), "actor": ("lompo.actor_lr",), "critic": ("lompo.critic_lr", "lompo.weight")},
-    "curl": _CURL,
-    "curl-cql": {**_CURL, "critic": ("curl.critic_lr", "curl.cql_weight")},
-    "drq-bc": {"actor": ("drqbc.lr", "drqbc.bc_weight"), "critic": ("drqbc.lr",)},
+KNOBS: dict[str, Mapping[str, tuple[str, ...]]] = {
+    "dreamerv2-online": DREAMER_KNOBS,
+    **{record.checkpoint: record.knobs for record in REGISTRY},
+    "coworld-source": {**DREAMER_KNOBS, "policy_value": ("actor_critic.critic_lr",), "coworld": ("world_model.lr",)},
 }
 """The config keys that scale what each network of a kind of run learns, by metric group: what a line about a
-diverged loss says to lower (``coworld`` is CoWorld's target agent, ``coworld-source`` its source agent)."""
+diverged loss says to lower. Keyed by checkpoint kind: each algorithm's (its record's ``knobs``), an agent learning
+online (the collector, a source agent's pretraining) and CoWorld's source agent."""
 
 _ENTRY_GROUPS = {
     "world_model": "wm",
@@ -137,7 +116,7 @@ class Phase:
     def _remedy(self, *groups: str) -> str:
         """What to lower for the networks of ``groups`` (an unknown group: every key of the kind), with their values
         now."""
-        knobs = KNOBS.get(self.kind, _DREAMER)
+        knobs = KNOBS.get(self.kind, DREAMER_KNOBS)
         keys = [key for group in groups for key in knobs.get(group, ())]
         if not keys:
             keys = [key for group in knobs.values() for key in group]

@@ -25,6 +25,7 @@ import numpy as np
 import torch
 
 from coworld import envs, interrupt
+from coworld.algorithms import algorithm
 from coworld.data.values import arrival_rewards, true_values
 from coworld.progress import progress_bar
 
@@ -314,7 +315,9 @@ def load_trained_agent(path: Path, device: str = "auto") -> tuple[Any, dict[str,
     config = replace(config, device=device)
     torch_device = resolve_device(device)
     action_size = envs.task_spec(info["target"]).action_size
-    if info["algo"] == "coworld" and "source_task" in state:  # both agents: the value check reads the cap's critic too
+    if (
+        algorithm(info["algo"]).collaborative and "source_task" in state
+    ):  # both agents: the value check reads the cap's critic too
         from coworld.agents.coworld import CoWorld
 
         source_size = envs.task_spec(state["source_task"]).action_size

@@ -1,6 +1,6 @@
-"""A training request, checked: what ``coworld train`` hands to an algorithm's loop, and the algorithm names.
+"""A training request, checked: what ``coworld train`` hands to an algorithm's loop.
 
-Pure data and names, imported by every loop and by the commands alike; the checks that build a :class:`TrainJob`
+Pure data, imported by every loop and by the commands alike; the checks that build a :class:`TrainJob`
 are :func:`coworld.training.train.check_job`.
 """
 
@@ -11,46 +11,17 @@ from pathlib import Path
 from typing import Any
 
 from coworld import envs
+from coworld.algorithms import algorithm
 from coworld.config import Config, canonical_preset
 from coworld.errors import CoworldError
 
 START_OVER = "pass a new --logdir, or --force to start this one over"
 """How ``coworld train`` starts a run folder of other settings over; the collector names its own options."""
 
-ALGOS = (
-    "coworld",
-    "dreamerv2",
-    "curl",
-    "curl-cql",
-    "drq-bc",
-    "dreamerv2-penalty",
-    "dreamerv2-finetune",
-    "lompo",
-    "dreamerv2-finetune-ewc",
-)
-MODEL_FREE = ("curl", "curl-cql", "drq-bc")
-NEEDS_SOURCE = ("coworld", "dreamerv2-finetune", "dreamerv2-finetune-ewc")
-"""Algorithms that also learn online in a source task (``--source``); the others learn from the target dataset
-alone."""
-MODEL_BASED = ("coworld", "dreamerv2", "dreamerv2-penalty", "dreamerv2-finetune", "lompo", "dreamerv2-finetune-ewc")
-"""The algorithms that train DreamerV2's world model (and read ``train.backend``)."""
-
-CHECKPOINT_KINDS = {
-    "coworld": "coworld",
-    "dreamerv2": "dreamerv2-offline",
-    "curl": "curl",
-    "curl-cql": "curl-cql",
-    "drq-bc": "drq-bc",
-    "dreamerv2-penalty": "dreamerv2-penalty",
-    "dreamerv2-finetune": "dreamerv2-finetune",
-    "lompo": "lompo",
-    "dreamerv2-finetune-ewc": "dreamerv2-finetune-ewc",
-}
-
 
 def default_logdir(algo: str, source: str | None, target: str, seed: int) -> Path:
     sources = "+".join(parse_sources(source)) if source else None  # a list of sources is written a+b in names
-    pair = f"{sources}-{target}" if sources and algo in NEEDS_SOURCE else target
+    pair = f"{sources}-{target}" if sources and algorithm(algo).needs_source else target
     return Path("runs") / f"{algo}-{pair}-s{seed}"
 
 

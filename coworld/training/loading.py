@@ -14,11 +14,12 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+from coworld.algorithms import ALGOS, algorithm
 from coworld.config import Config, first_difference, from_dict, to_dict
 from coworld.envs import task_spec
 from coworld.errors import CheckpointError, CoworldError
 from coworld.training.checkpoint import CHECKPOINT_NAME, load_checkpoint
-from coworld.training.job import ALGOS, CHECKPOINT_KINDS, parse_sources
+from coworld.training.job import parse_sources
 from coworld.training.run import load_run
 
 ONLINE_KIND = "dreamerv2-online"
@@ -27,7 +28,7 @@ ONLINE_KIND = "dreamerv2-online"
 
 def checkpoint_kind(info: Mapping[str, Any]) -> str:
     """The ``kind`` of the checkpoint a run of this description writes."""
-    return ONLINE_KIND if info.get("online") else CHECKPOINT_KINDS[str(info["algo"])]
+    return ONLINE_KIND if info.get("online") else algorithm(str(info["algo"])).checkpoint
 
 
 def open_run(path: str | Path) -> tuple[Path, Path, Config, dict[str, Any]]:

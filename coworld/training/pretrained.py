@@ -15,6 +15,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from coworld.algorithms import algorithm
 from coworld.config import Config, first_difference, to_dict
 from coworld.errors import CoworldError
 from coworld.storage import copy_file_atomically
@@ -83,7 +84,7 @@ def check_donors(donors: Sequence[Path], *, config: Config, info: dict[str, Any]
     sweep's run still to start) passes."""
     from coworld.training.run import load_run
 
-    if info["algo"] != "coworld":
+    if not algorithm(info["algo"]).collaborative:
         raise CoworldError(
             f"--keep-pretrained and --pretrained-from share CoWorld's source pretraining; {info['algo']} has none"
         )

@@ -18,6 +18,7 @@ import h5py
 import numpy as np
 import torch
 
+from coworld.algorithms import algorithm
 from coworld.config import Config, canonical_preset, first_difference, from_dict, split_preset, to_dict, to_json
 from coworld.devices import resolve_device
 from coworld.errors import ConfigError, CoworldError
@@ -37,8 +38,9 @@ def preset_warnings(preset: str, device: str, algo: str = "dreamerv2") -> list[s
     """Warnings of a preset that does not size this run for this machine: the GPU-sized paper preset on a CPU, and
     the cpu preset for a model-free baseline (it sizes the DreamerV2 family only)."""
     size, _ = split_preset(preset)
-    if size == "cpu" and algo in ("curl", "curl-cql", "drq-bc"):
-        section = "drqbc" if algo == "drq-bc" else "curl"
+    record = algorithm(algo)
+    if size == "cpu" and not record.world_model:
+        section = record.section
         return [
             f"the cpu preset sizes coworld and the dreamerv2 family only: {algo} runs at the paper's size here"
             f" ({section}.updates, {section}.batch_size); pass --preset tiny for a small run, or size it with"

@@ -13,18 +13,11 @@ from pathlib import Path
 from typing import Any
 
 from coworld import envs
+from coworld.algorithms import ALGOS, algorithm
 from coworld.config import Config, make_config
 from coworld.data.collect import default_dataset_path
 from coworld.errors import CoworldError, DatasetError
-from coworld.training.job import (
-    ALGOS,
-    MODEL_BASED,
-    MODEL_FREE,
-    NEEDS_SOURCE,
-    TrainJob,
-    default_logdir,
-    parse_sources,
-)
+from coworld.training.job import TrainJob, default_logdir, parse_sources
 
 
 def check_source(algo: str, source: str, target: str) -> list[str]:
@@ -40,7 +33,7 @@ def check_source(algo: str, source: str, target: str) -> list[str]:
             f"source {target} is the target itself, but a source is another domain, learned online beside the"
             f" target's dataset; pass another --source, e.g. --source {paired}"
         )
-    if algo != "coworld" and source_spec.action_size != target_spec.action_size:
+    if algorithm(algo).source == "carried" and source_spec.action_size != target_spec.action_size:
         raise CoworldError(
             f"source {source} has {source_spec.action_size} action dimensions but target {target} has"
             f" {target_spec.action_size}; {algo} carries the source agent's networks over to the target, so pick a"
@@ -91,12 +84,13 @@ def check_job(
         extra.append(f"device={device}")
     config = make_config(preset, extra)
     warnings: list[str] = []
-    if algo in NEEDS_SOURCE:
+    record = algorithm(algo)
+    if record.needs_source:
         if source is None:
             paired = envs.paired_source(target) or "a task of the target's body (see `coworld tasks`)"
             raise CoworldError(f"{algo} needs an online source domain: pass --source, e.g. --source {paired}")
         sources = parse_sources(source)
-        if len(sources) > 1 and algo != "coworld":
+        if len(sources) > 1 and record.source != "any":
             raise CoworldError(
                 f"{algo} takes one --source; a list ({source}) is CoWorld's automatic source choice (--algo coworld)"
             )
@@ -113,7 +107,7 @@ def check_job(
     warnings += longer_than_episodes(path, needed_steps(algo, config))
     warnings += unread_length(algo, config, make_config(preset))
     run_dir = Path(logdir) if logdir is not None else default_logdir(algo, source, target, config.seed)
-    job = TrainJob(algo, source if algo in NEEDS_SOURCE else None, target, path, run_dir, config, preset)
+    job = TrainJob(algo, source if record.needs_source else None, target, path, run_dir, config, preset)
     if force:
         if run_dir.exists() and not run_dir.is_dir():
             raise CoworldError(f"{run_dir} is a file, not a run folder; pass another --logdir")
@@ -147,15 +141,15 @@ def check_config(algo: str, config: Config, action_size: int) -> None:
 
     check_schedule(algo, config)
     check_memory(algo, config)
-    if algo in MODEL_BASED:
+    if algorithm(algo).world_model:
         check_backend(config, action_size)
 
 
 def needed_steps(algo: str, config: Config) -> tuple[int, str] | None:
     """The fewest steps a dataset must hold for ``algo``'s sampler and the config key that asks for them: a model's
-    sequences of ``train.seq_len`` (the model-free baselines sample single transitions, stacks padded at the
-    start of an episode, so any dataset will do)."""
-    return None if algo in MODEL_FREE else (config.train.seq_len, "train.seq_len")
+    sequences of ``train.seq_len`` (the model-free baselines' own samplers take single transitions, stacks padded at
+    the start of an episode, so any dataset will do)."""
+    return None if algorithm(algo).sampler is not None else (config.train.seq_len, "train.seq_len")
 
 
 def check_resumable(run_dir: Path, config: Config, info: dict[str, Any]) -> None:
@@ -168,7 +162,7 @@ def check_resumable(run_dir: Path, config: Config, info: dict[str, Any]) -> None
 
     main, source = run_dir / "checkpoint.pt", run_dir / "source" / "checkpoint.pt"
     if main.exists():
-        keys = COWORLD_CHECKPOINT_KEYS if info["algo"] == "coworld" else CHECKPOINT_KEYS
+        keys = COWORLD_CHECKPOINT_KEYS if algorithm(info["algo"]).collaborative else CHECKPOINT_KEYS
         load_run_checkpoint(main, config, info, keys=keys, mmap=True)
         return
     sources = parse_sources(info["source"]) if info.get("source") else ()
@@ -200,9 +194,11 @@ def check_schedule(algo: str, config: Config) -> None:
                 f"{section}.model_updates={model_updates} leaves none of the run's {total} updates"
                 " (coworld.iterations x coworld.target_updates) to the actor-critic; lower it or lengthen the run"
             )
-    if algo == "lompo" and config.train.seq_len < 2:
+    shortest = algorithm(algo).min_seq_len
+    if config.train.seq_len < shortest:
         raise CoworldError(
-            "lompo learns from consecutive steps of the dataset's sequences, so train.seq_len must be at least 2"
+            f"{algo} learns from consecutive steps of the dataset's sequences, so train.seq_len must be at least"
+            f" {shortest}"
         )
 
 
@@ -259,14 +255,7 @@ def unread_length(algo: str, config: Config, preset_config: Config) -> list[str]
     ``coworld train`` run, which never reads it; it names the settings that set the run's length."""
     if config.train.steps == preset_config.train.steps:
         return []
-    if algo in MODEL_FREE:
-        section = "drqbc" if algo == "drq-bc" else "curl"
-        length = f"{getattr(config, section).updates:,} updates ({section}.updates)"
-    else:
-        cw = config.coworld
-        length = f"{cw.iterations * cw.target_updates:,} target updates (coworld.iterations x coworld.target_updates)"
-        if algo in NEEDS_SOURCE:
-            length += f" after {cw.pretrain_steps:,} source env steps (coworld.pretrain_steps)"
+    length = algorithm(algo).length(config)
     return [f"train.steps is the length of `coworld collect`'s online run, not of training: {algo} makes {length}"]
 
 
@@ -298,7 +287,7 @@ def run_job(job: TrainJob, *, progress: bool = True) -> dict[str, Any]:
         clear_run_dir(job.logdir)
     resumed = prepare_run_dir(job.logdir, job.config, job.info())
     seed_everything(job.config.seed)
-    if job.algo == "coworld":
+    if algorithm(job.algo).collaborative:
         from coworld.training.coworld import train_coworld
 
         return train_coworld(job, device=device, resumed=resumed, progress=progress)

@@ -15,19 +15,11 @@ from typing import Any
 import numpy as np
 
 from coworld import envs
+from coworld.algorithms import algorithm, names
 from coworld.config import Config
 from coworld.data.schema import STEP_KEYS
 from coworld.data.windows import episode_windows, evenly_spaced
 from coworld.errors import CoworldError
-
-WORLD_MODEL_ALGOS = (
-    "coworld",
-    "dreamerv2",
-    "dreamerv2-penalty",
-    "dreamerv2-finetune",
-    "lompo",
-    "dreamerv2-finetune-ewc",
-)
 
 
 @dataclass
@@ -66,13 +58,13 @@ def load_run_models(path: str | Path, device: str = "auto") -> RunModels:
     from coworld.training.loading import load_run_checkpoint, open_run
 
     run_dir, ckpt, config, info = open_run(path)
-    algo = info["algo"]
-    if algo not in WORLD_MODEL_ALGOS:
+    algo, record = info["algo"], algorithm(info["algo"])
+    if not record.world_model:
         raise CoworldError(
             f"{run_dir} is a {algo} run: it has no world model to look inside; pass a run of"
-            f" {', '.join(WORLD_MODEL_ALGOS)}"
+            f" {', '.join(names(world_model=True))}"
         )
-    parts = {"target": "agent", "source": "source"} if algo == "coworld" else {algo: "agent"}
+    parts = {"target": "agent", "source": "source"} if record.collaborative else {algo: "agent"}
     torch_device = resolve_device(device)
     state = load_run_checkpoint(ckpt, config, info, keys=tuple(parts.values()), map_location=torch_device)
     config = replace(config, device=str(torch_device))
@@ -87,8 +79,7 @@ def load_run_models(path: str | Path, device: str = "auto") -> RunModels:
             model_size = source_model_action_size(size, action_size)
             agent = DreamerV2(config=config, action_size=size, device=torch_device, model_action_size=model_size)
         else:
-            agent = make_agent("dreamerv2" if algo == "coworld" else algo, config=config, action_size=action_size,
-                               device=torch_device)  # fmt: skip
+            agent = make_agent(algo, config=config, action_size=action_size, device=torch_device)
         load_agent_state(agent, state[key], ckpt, f"a {algo} run of this config")
         agents[name] = agent
     return RunModels(run_dir=run_dir, config=config, info=info, agents=agents)

@@ -20,9 +20,9 @@ def make_run():
     """``make_run(folder, algo, dataset, checkpoint_of=None, task=...)``: a run folder as `coworld train` makes it
     (tiny preset, CPU), with an untrained checkpoint."""
     from coworld.agents.factory import make_agent
+    from coworld.algorithms import algorithm
     from coworld.config import make_config, to_dict
     from coworld.training.checkpoint import save_checkpoint
-    from coworld.training.job import CHECKPOINT_KINDS, NEEDS_SOURCE
     from coworld.training.run import prepare_run_dir
 
     TARGET = "toy_reach_shifted"
@@ -33,12 +33,13 @@ def make_run():
         """A run folder of ``algo`` as `coworld train` describes it, holding an untrained checkpoint of
         ``checkpoint_of`` (default: ``algo``) trained on ``task``."""
         config = make_config("tiny", ["device=cpu"])
-        source = "toy_reach" if algo in NEEDS_SOURCE else None
+        source = "toy_reach" if algorithm(algo).needs_source else None
         info = {"algo": algo, "source": source, "target": TARGET, "dataset": str(dataset), "preset": "tiny"}
         prepare_run_dir(folder, config, info)
         made = checkpoint_of or algo
         agent = make_agent(made, config=config, action_size=2, device="cpu")
-        state = {"kind": CHECKPOINT_KINDS[made], "task": task, "config": to_dict(config), "agent": agent.state_dict()}
+        kind = algorithm(made).checkpoint
+        state = {"kind": kind, "task": task, "config": to_dict(config), "agent": agent.state_dict()}
         save_checkpoint(folder / "checkpoint.pt", state)
         return folder
 

@@ -8,10 +8,10 @@ import json
 
 import pytest
 
+from coworld.algorithms import ALGOS
 from coworld.budget import check_memory, estimate
 from coworld.config import make_config
 from coworld.errors import ConfigError
-from coworld.training.job import ALGOS
 
 TARGET = "toy_reach_shifted"
 

@@ -11,9 +11,9 @@ from pathlib import Path
 
 import pytest
 
+from coworld.algorithms import algorithm
 from coworld.report import write_report
 from coworld.training.checkpoint import save_checkpoint
-from coworld.training.job import CHECKPOINT_KINDS
 from coworld.training.run import prepare_run_dir
 from coworld.training.train import check_job
 
@@ -40,7 +40,7 @@ def test_eval_refuses_a_checkpoint_of_another_algorithm(
     run = make_run(tmp_path / "run", folder_algo, toy_dataset, checkpoint_of=checkpoint_algo)
     before = digest(run)
     code, out = cli("eval", "--ckpt", str(run), "--episodes", "1", "--device", "cpu")
-    one_line(code, out, f"'{CHECKPOINT_KINDS[checkpoint_algo]}' checkpoint", f"is a {folder_algo} run", "copied")
+    one_line(code, out, f"'{algorithm(checkpoint_algo).checkpoint}' checkpoint", f"is a {folder_algo} run", "copied")
     assert digest(run) == before  # no eval.json labelled with the folder's algorithm
 
 

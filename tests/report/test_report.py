@@ -409,7 +409,7 @@ def test_a_fine_tuned_run_reports_its_target_updates_and_evaluations_not_its_sou
     make_run(tmp_path, "drq", algo="drq-bc", target="toy_reach_shifted", seed=0, returns=[9.0])
     make_run(tmp_path, "dv", algo="dreamerv2", target="toy_reach_shifted", seed=0, returns=[10.0])
     header = results_table(load_results(tmp_path)).splitlines()[0]
-    assert header.index("drq-bc") < header.index("dreamerv2 ") < header.index("dreamerv2-finetune")  # ALGO_ORDER
+    assert header.index("drq-bc") < header.index("dreamerv2 ") < header.index("dreamerv2-finetune")  # the columns
 
 
 def test_coworld_diagnostics_summarise_each_term_from_the_logs(tmp_path):
@@ -499,7 +499,7 @@ def test_lompo_and_the_ewc_fine_tuned_runs_get_their_own_columns_and_curves(tmp_
     table = results_table(load_results(tmp_path)).splitlines()
     header = table[0]
     order = ["dreamerv2-penalty", "lompo", "dreamerv2-finetune ", "dreamerv2-finetune-ewc"]
-    assert [header.index(name) for name in order] == sorted(header.index(name) for name in order)  # ALGO_ORDER
+    assert [header.index(name) for name in order] == sorted(header.index(name) for name in order)  # columns
     cells = [cell.strip() for cell in table[2].split("|")[1:-1]]
     names = [cell.strip() for cell in header.split("|")[1:-1]]
     assert cells[names.index("lompo")] == "7.0 (n=1)"  # one seed: no spread to show

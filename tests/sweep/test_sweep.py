@@ -265,6 +265,6 @@ def test_lompo_and_the_ewc_fine_tuned_dreamerv2_run_in_a_sweep_and_get_report_ro
     out = CliRunner().invoke(main, ["report", str(root)])
     assert out.exit_code == 0, out.output
     report = (root / "report.md").read_text()
-    assert "| pair | lompo | dreamerv2-finetune-ewc |" in report  # ALGO_ORDER: LOMPO before the fine-tuned ones
+    assert "| pair | lompo | dreamerv2-finetune-ewc |" in report  # the columns: LOMPO, then fine-tuned
     assert "| toy_reach → toy_reach_shifted | lompo |" in report  # its value-check row
     assert "| toy_reach → toy_reach_shifted | dreamerv2-finetune-ewc |" in report
