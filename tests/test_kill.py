@@ -9,6 +9,7 @@ sweeps are marked slow.
 
 from __future__ import annotations
 
+import re
 import time
 from pathlib import Path
 from types import ModuleType
@@ -180,3 +181,53 @@ def _differs(a: object, b: object) -> bool:
 def _replaced(path: Path, mtime: int | None):
     """Whether ``path`` exists and is not the file of modification time ``mtime``."""
     return lambda: path.exists() and path.stat().st_mtime_ns != mtime
+
+
+DV2_COLLECT = (
+    "collect --task toy_reach --preset tiny --quiet --device cpu --threads 1 --max-steps 400 --set train.prefill=100"
+    " --set train.checkpoint_every=200 --set train.log_every=10"
+).split()
+"""400 steps of 50-step episodes, an update every 10 steps after the prefill, checkpoints at steps 200 and 400."""
+
+
+def test_the_dreamerv2_collector_killed_past_its_checkpoint_resumes_to_the_uninterrupted_run(
+    tmp_path: Path, processes: ModuleType, helpers: ModuleType
+) -> None:
+    """Killed after an episode its agent's checkpoint (step 200) had not seen, the collector resumes from that
+    checkpoint with the dataset cut back to it: the rerun ends with the episodes, the record, the log and the agent
+    of the run never stopped."""
+    out, whole = tmp_path / "stopped" / "d.h5", tmp_path / "whole" / "d.h5"
+    done = processes.run_cli(*DV2_COLLECT, "--out", str(whole))
+    assert done.returncode == 0, done.stderr[-3000:]
+    run = out.with_name("d.run")
+    proc = processes.start_cli(*DV2_COLLECT, "--out", str(out))
+    processes.wait_for((run / "checkpoint.pt").exists, proc, what="the first checkpoint")
+    processes.wait_for(lambda: max(_logged_steps(run), default=0) >= 260, proc, what="the step 260 record")
+    processes.kill(proc)
+    with open_dataset(out) as data:  # it holds an episode the checkpoint had not seen
+        assert data.num_episodes > load_checkpoint(run / "checkpoint.pt")["episodes"]
+    done = processes.run_cli(*DV2_COLLECT, "--out", str(out), "--resume")
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert re.search(
+        rf"warning: {out} held \d+ episodes and the agent's last checkpoint had seen 4: the \d+ episodes?"
+        " after it are collected again",
+        done.stderr,
+    ), done.stderr[-3000:]
+    assert helpers.episode_digests(out) == helpers.episode_digests(whole)
+    with open_dataset(out) as data, open_dataset(whole) as reference:
+        record, expected = data.metadata["collector"], reference.metadata["collector"]
+        assert data.complete and record["steps"] == data.num_steps == 400
+        assert record.pop("run") != expected.pop("run") and record == expected  # steps, updates, stop reason
+    states = [load_checkpoint(path.with_name("d.run") / "checkpoint.pt") for path in (out, whole)]
+    for state in states:
+        state.pop("config")
+        state.pop("metrics_mark")
+    assert not _differs(*states)  # the agent, its counters and random states
+    assert _logged_steps(run) == _logged_steps(whole.with_name("d.run"))  # each record once
+
+
+def _logged_steps(run: Path) -> list[int]:
+    """The steps of a run's metrics records, in order."""
+    from coworld.training.logger import read_metrics
+
+    return [record["step"] for record in read_metrics(run)]

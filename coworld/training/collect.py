@@ -16,8 +16,11 @@
   ``expert`` there is no default ``stop_return``: the agent trains for all ``max_steps``.
 
 The agent's run folder (checkpoint, logs, config) sits next to the dataset as ``<dataset>.run/``. Killed and
-rerun with ``--resume``, the agent comes back from its last checkpoint and the dataset continues from its last
-whole episode.
+rerun with ``--resume``, the agent comes back from its last checkpoint and the dataset is cut back to the episodes
+that checkpoint had seen (to none without one), so the rerun records again what the killed run recorded after it and
+ends with the dataset, record, log and agent of a run never stopped (the episodes an agent made can be made again
+only by that agent in that state). A dataset whose agent's run folder is gone is not resumed: nothing could make its
+episodes go on.
 """
 
 from __future__ import annotations
@@ -37,6 +40,7 @@ from coworld.data.collect import dataset_fields
 from coworld.devices import resolve_device
 from coworld.errors import CoworldError, DatasetError
 from coworld.storage import check_writable
+from coworld.text import count
 from coworld.training.description import collector_run_info
 from coworld.training.logger import Logger
 from coworld.training.online import OnlineTrainer
@@ -106,6 +110,8 @@ def collect_dreamerv2(
         raise DatasetError(f"{out} already exists; pass --resume to continue it or --force to overwrite it")
     if force and run_dir.exists():
         shutil.rmtree(run_dir)
+    if resume and not force and quality in REPLAY_QUALITIES and not (run_dir / "config.json").exists():
+        _check_agent_is_there(out, run_dir)
     if stop_return is None:
         stop_return = default_stop_return(task, quality)
     limit = max_steps if max_steps is not None else config.train.steps
@@ -148,7 +154,10 @@ def collect_dreamerv2(
     )
     with Logger(run_dir) as logger, writer:
         trainer = OnlineTrainer(agent=agent, task=task, config=config, logdir=run_dir, writer=writer, logger=logger)
-        trainer.restore()
+        held = writer.num_episodes
+        trainer.restore(rollback=True)
+        if writer.num_episodes < held:
+            _note_rollback(writer, trainer, held, warn)
         try:
             if quality == "medium-expert":
                 result = _train_past_medium(trainer, writer, limit, medium_return, stop_return, progress)
@@ -166,6 +175,39 @@ def collect_dreamerv2(
     if quality in REPLAY_QUALITIES:
         return DreamerCollectSummary(out, result.episodes, result.steps, result.stop_reason, result.last_eval_return)
     return _record_policy(agent, task, out, quality, episodes, seed, collector, result, fields, resume, compression)
+
+
+def _check_agent_is_there(out: Path, run_dir: Path) -> None:
+    """Refuse to resume ``out`` where it holds episodes but its agent's run folder is gone (deleted, or the dataset
+    moved without it): a fresh agent would go on with other data than the collection's."""
+    from coworld.data import open_dataset
+
+    if not out.exists():
+        return
+    with open_dataset(out) as data:
+        held = data.num_episodes
+    if held:
+        raise DatasetError(
+            f"cannot resume {out}: its {count(held, 'episode')} came from an agent whose run folder {run_dir} is not"
+            " there, so nothing can go on with them; put that folder back, or pass --force to collect anew"
+        )
+
+
+def _note_rollback(
+    writer: DatasetWriter, trainer: OnlineTrainer, held: int, warn: Callable[[str], None] | None
+) -> None:
+    """After the dataset was cut back to the agent's checkpoint: the record's last evaluation is again the
+    checkpoint's, and ``warn`` hears what is collected again."""
+    if "last_eval_step" in writer.metadata["collector"]:
+        writer.update_metadata(last_eval_return=trainer.last_eval, last_eval_step=trainer.last_eval_step)
+    if warn is None:
+        return
+    kept, again = writer.num_episodes, count(held - writer.num_episodes, "episode")
+    said = f"{writer.path} held {count(held, 'episode')}"
+    if kept:
+        warn(f"{said} and the agent's last checkpoint had seen {kept}: the {again} after it are collected again")
+    else:
+        warn(f"{said} and the agent had no checkpoint yet: they are collected again from the start")
 
 
 def _train_past_medium(

@@ -4,9 +4,10 @@ Keys are namespaced (``wm/``, ``actor/``, ``critic/``, ``coworld/``, ``eval/``, 
 :meth:`Logger.log` writes one record at one step to every output; :meth:`Logger.log_image` writes a picture to
 TensorBoard (e.g. the open-loop prediction strips, ``openl/<task>``).
 
-A checkpoint keeps :meth:`Logger.mark` (``metrics.jsonl``'s length and digest as the checkpoint is written); a run
-resumed from it redoes the updates that followed, so it first cuts the file back there (:meth:`Logger.rewind`) and
-logs each record once, as an uninterrupted run does.
+A checkpoint keeps :meth:`Logger.mark` (``metrics.jsonl``'s length and digest, and each TensorBoard event file's
+length, as the checkpoint is written); a run resumed from it redoes the updates that followed, so it first cuts the
+files back there (:meth:`Logger.rewind`) and logs each record once, as an uninterrupted run does. The event files are
+cut at record boundaries (every write is flushed), and those an earlier process began after the mark are removed.
 """
 
 from __future__ import annotations
@@ -32,7 +33,7 @@ CONSOLE_KEYS = ("eval/", "/loss", "perf/", "coworld/")
 
 METRICS_MARK = "metrics_mark"
 """The checkpoint entry holding :meth:`Logger.mark` (absent from checkpoints written before it was kept)."""
-EMPTY_MARK = {"bytes": 0, "sha256": hashlib.sha256(b"").hexdigest()}
+EMPTY_MARK = {"bytes": 0, "sha256": hashlib.sha256(b"").hexdigest(), "tensorboard": {}}
 """The mark of a file before any record: a run starting over from nothing rewinds to it."""
 
 
@@ -53,10 +54,13 @@ class Logger:
         self._console = "console" in outputs
         self._jsonl = open(self.logdir / "metrics.jsonl", "a") if "jsonl" in outputs else None
         self._tb = None
+        self._earlier_events: set[str] = set()
+        """The event files that earlier processes wrote in ``tb/`` (this one's own is new)."""
         if "tensorboard" in outputs:
             from torch.utils.tensorboard import SummaryWriter
 
             _quiet_event_writer_threads()
+            self._earlier_events = {path.name for path in self._event_files()}
             self._tb = SummaryWriter(str(self.logdir / "tb"))
         self._start = time.time()
 
@@ -85,19 +89,27 @@ class Logger:
             tqdm.tqdm.write(f"[{unit} {step:,}] {text}", file=sys.stderr)
 
     def mark(self) -> dict[str, Any] | None:
-        """Where ``metrics.jsonl`` stands now, for a checkpoint to keep: its length in bytes and the SHA-256 of those
-        bytes (which tells this file from another run's, e.g. a pretraining moved here); None without the jsonl
-        output."""
+        """Where the logs stand now, for a checkpoint to keep: ``metrics.jsonl``'s length in bytes and the SHA-256 of
+        those bytes (which tells this file from another run's, e.g. a pretraining moved here), and with TensorBoard
+        the length of each event file in ``tb/``; None without the jsonl output."""
         if self._jsonl is None:
             return None
         self._jsonl.flush()
         data = (self.logdir / "metrics.jsonl").read_bytes()
-        return {"bytes": len(data), "sha256": hashlib.sha256(data).hexdigest()}
+        mark: dict[str, Any] = {"bytes": len(data), "sha256": hashlib.sha256(data).hexdigest()}
+        if self._tb is not None:
+            with self._tensorboard_writes():
+                self._tb.flush()
+            mark["tensorboard"] = {path.name: path.stat().st_size for path in self._event_files()}
+        return mark
 
     def rewind(self, mark: Mapping[str, Any] | None) -> None:
-        """Cut ``metrics.jsonl`` back to ``mark`` (a checkpoint's :meth:`mark`), dropping the records a run resumed
-        from that checkpoint logs again. The file is left as it is where ``mark`` is None (a checkpoint from before
-        marks were kept) or does not describe the start of this file (another run's; a file already shorter)."""
+        """Cut the logs back to ``mark`` (a checkpoint's :meth:`mark`), dropping the records a run resumed from that
+        checkpoint logs again: ``metrics.jsonl`` to its length then, and the event files earlier processes wrote to
+        theirs (removing those begun after it). Everything is left as it is where ``mark`` is None (a checkpoint from
+        before marks were kept) or does not describe the start of ``metrics.jsonl`` (another run's; a file already
+        shorter); the event files too where the mark has no lengths of theirs (a checkpoint from before they were
+        kept, or written without TensorBoard)."""
         if self._jsonl is None or mark is None:
             return
         self._jsonl.flush()
@@ -107,6 +119,22 @@ class Logger:
         if len(kept) != size or hashlib.sha256(kept).hexdigest() != mark["sha256"]:
             return
         os.truncate(path, size)  # the file is open for appending: the next record goes at the new end
+        if self._tb is not None and "tensorboard" in mark:
+            self._rewind_events({str(name): int(length) for name, length in mark["tensorboard"].items()})
+
+    def _rewind_events(self, lengths: Mapping[str, int]) -> None:
+        """Cut the earlier processes' event files to ``lengths`` (name: bytes), removing those not named."""
+        for name in sorted(self._earlier_events):
+            path = self.logdir / "tb" / name
+            if name not in lengths:
+                path.unlink(missing_ok=True)
+                self._earlier_events.discard(name)
+            elif path.exists() and path.stat().st_size > lengths[name]:
+                os.truncate(path, lengths[name])
+
+    def _event_files(self) -> list[Path]:
+        """The TensorBoard event files in ``tb/``, this process's own among them once it has one."""
+        return sorted((self.logdir / "tb").glob("events.out.tfevents.*"))
 
     def log_image(self, tag: str, image: Any, step: int) -> None:
         """Record a uint8 ``(H, W, 3)`` picture at ``step`` (TensorBoard only; the other outputs take scalars)."""

@@ -11,10 +11,11 @@ Resumes: a checkpoint holds, beside the agent and the random states, the trainer
 state and the running episodes, as each environment's episode seed and its actions so far (an episode is a function
 of the two, :class:`coworld.envs.base.PixelEnv`). Where the dataset holds exactly the episodes the checkpoint had
 seen, the next :meth:`OnlineTrainer.run` makes the running episodes again by replaying those actions and goes on as
-the uninterrupted run did: the same steps, batches and weights. A two-phase run's source agent cuts its replay back
-to the checkpoint (``restore(rollback=True)``) to resume this way; collection keeps every recorded episode, so where
-it recorded some after its checkpoint the step count continues from the dataset's row count and new episodes start
-(the ones running at the kill are lost, as promised by the dataset writer).
+the uninterrupted run did: the same steps, batches and weights. Collection and a two-phase run's source agent cut
+their dataset back to the checkpoint (``restore(rollback=True)``) to resume this way, and their log with it (emptied
+where no checkpoint was written). Without the cut, where the dataset recorded episodes after its checkpoint, the step
+count continues from the dataset's row count and new episodes start (the ones running at the kill are lost, as
+promised by the dataset writer).
 
 Vector environments follow Gymnasium's default NEXT_STEP autoreset: after a step that ends an episode, the
 next ``step`` of that environment ignores its action and returns the first observation of a new episode. The
@@ -23,7 +24,7 @@ of every episode (and only with it), the frame the replay stores as ``is_first``
 
 Train ratio: after ``train.prefill`` random steps the agent makes ``train.pretrain_updates`` updates at once
 (DreamerV2's ``pretrain``), then one update every ``train.train_every`` environment steps
-(:meth:`OnlineTrainer.updates_due`). A collection resumed from a dataset that went on past its checkpoint keeps
+(:meth:`OnlineTrainer.updates_due`). A run resumed from a dataset that went on past its checkpoint keeps
 that ratio from its restored state on rather than catching up the updates lost with the killed process.
 
 By default each update is made as soon as it falls due, before the next step, and acting draws its random numbers
@@ -58,7 +59,7 @@ from coworld.progress import progress_bar
 from coworld.training.checkpoint import CHECKPOINT_NAME, read_run_checkpoint, restore_agent, run_state, save_checkpoint
 from coworld.training.divergence import Phase
 from coworld.training.evaluate import evaluate
-from coworld.training.logger import METRICS_MARK, Logger, Rate
+from coworld.training.logger import EMPTY_MARK, METRICS_MARK, Logger, Rate
 from coworld.training.openloop import log_open_loop
 from coworld.training.replay import Replay
 
@@ -251,10 +252,10 @@ class OnlineTrainer:
     def restore(self, *, rollback: bool = False) -> dict[str, Any] | None:
         """Reload agent, counters and RNG from the checkpoint and the replay from the dataset, if any.
 
-        ``rollback`` (a source agent's pretraining): the dataset is first cut back to the episodes the checkpoint had
-        seen (to none without a checkpoint), so the agent, its counters and its replay are again those of one moment
-        of the run, and the rerun ends with the counts an uninterrupted run ends with. Without it (collection) every
-        recorded episode is kept: the dataset is what the run is for.
+        ``rollback`` (collection, a source agent's pretraining): the dataset is first cut back to the episodes the
+        checkpoint had seen (to none without a checkpoint, the log emptied too), so the agent, its counters and its
+        replay are again those of one moment of the run, and the rerun ends with the counts an uninterrupted run ends
+        with. Without it every recorded episode is kept.
         """
         state = None
         if self.checkpoint_path.exists():
@@ -276,6 +277,8 @@ class OnlineTrainer:
             self.replay.add_episode(episode)
         self.steps = self.writer.num_steps
         if state is None:
+            if rollback:  # nothing of the run was kept: it starts over, its log too
+                self.logger.rewind(EMPTY_MARK)
             return
         self.updates = int(state["updates"])
         self.last_eval = state["last_eval"]

@@ -112,3 +112,15 @@ def test_medium_expert_marks_where_its_medium_replay_part_ends_and_resumes_past_
     assert collector["medium_return"] == -1e9 and collector["stop_return"] == 1e9
     assert not (tmp_path / "toy_reach-medium_expert.run" / "replay.h5").exists()  # the dataset is the stream itself
     assert verify_dataset(out) == []
+
+
+def test_a_dataset_whose_agent_is_gone_is_not_resumed(tmp_path: Path, toy_dataset_writer, helpers) -> None:
+    """A resume cuts the dataset back to its agent's checkpoint; without the agent's run folder (deleted, or the
+    dataset moved without it) that would be every episode, and a fresh agent would go on with other data: refused."""
+    from coworld.errors import DatasetError
+
+    out = toy_dataset_writer(tmp_path / "toy_reach-medium_replay.h5", "toy_reach", episodes=2)
+    before = helpers.episode_digests(out)
+    with pytest.raises(DatasetError, match=r"its 2 episodes came from an agent whose run folder .* is not there"):
+        collect(out, max_steps=200, resume=True)
+    assert helpers.episode_digests(out) == before and not out.with_name("toy_reach-medium_replay.run").exists()

@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+import torch
 
 from coworld.agents.coworld import CoWorld
 from coworld.agents.dreamerv2 import DreamerV2
@@ -46,6 +47,8 @@ COWORLD = (
 source updates, a record every 5 steps and every target update."""
 EVERY_UPDATE = ("coworld.target_updates=4", "train.log_every=1")
 """An offline run of 8 updates, a record at every one and a checkpoint at every 4th."""
+FIRST_AT_100 = ("train.checkpoint_every=100",)
+"""Source pretraining's first checkpoint at its end, step 100."""
 
 
 class Killed(BaseException):
@@ -71,6 +74,17 @@ def records(logdir: Path) -> list[dict[str, Any]]:
     return [{k: v for k, v in r.items() if k != "time" and "perf/" not in k} for r in read_metrics(logdir)]
 
 
+def tensorboard_points(logdir: Path) -> list[tuple[str, int]]:
+    """Every (tag, step) the run's TensorBoard event files hold, sorted, repeats kept."""
+    from tensorboard.backend.event_processing.event_file_loader import EventFileLoader
+
+    points = []
+    for path in sorted((logdir / "tb").glob("events.out.tfevents.*")):
+        for event in EventFileLoader(str(path)).Load():
+            points.extend((value.tag, int(event.step)) for value in event.summary.value)
+    return sorted(points)
+
+
 def job(dataset: Path, logdir: Path, algo: str, *extra: str) -> Any:
     return check_job(
         algo=algo,
@@ -83,6 +97,17 @@ def job(dataset: Path, logdir: Path, algo: str, *extra: str) -> Any:
         device="cpu",
         overrides=[*COWORLD, *extra],
     )
+
+
+def differs(a: object, b: object) -> bool:
+    """Whether two nested states differ in structure or in any value, tensors element for element."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        return a.keys() != b.keys() or any(differs(a[key], b[key]) for key in a)
+    if isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)):
+        return len(a) != len(b) or any(differs(x, y) for x, y in zip(a, b, strict=True))
+    if isinstance(a, torch.Tensor) and isinstance(b, torch.Tensor):
+        return a.shape != b.shape or not torch.equal(a, b)
+    return a != b
 
 
 def stopped_then_resumed(monkeypatch: pytest.MonkeyPatch, run: Any, cls: type, method: str, call: int) -> None:
@@ -109,6 +134,10 @@ def stopped_then_resumed(monkeypatch: pytest.MonkeyPatch, run: Any, cls: type, m
         pytest.param(
             "dreamerv2-finetune", DreamerV2, "train", 13 + 7, EVERY_UPDATE, id="finetune-target", marks=pytest.mark.slow
         ),
+        # two-phase runs killed in their source pretraining before its first checkpoint (step 100), records of steps
+        # 50-65 logged: the rerun starts over, its logs emptied first
+        pytest.param("dreamerv2-finetune", DreamerV2, "train", 7, FIRST_AT_100, id="finetune-before-any-checkpoint"),
+        pytest.param("coworld", CoWorld, "train_source", 7, FIRST_AT_100, id="coworld-before-any-checkpoint"),
     ],
 )
 def test_a_resumed_run_logs_each_record_once(
@@ -129,11 +158,25 @@ def test_a_resumed_run_logs_each_record_once(
         monkeypatch, lambda: run_job(job(dataset, stopped, algo, *extra), progress=False), cls, method, call
     )
     assert records(stopped) == records(whole)
+    assert tensorboard_points(stopped) == tensorboard_points(whole)
 
 
-def test_a_resumed_collection_logs_each_record_once(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    """Killed in update 15 (step 140), before the episode after the checkpoint of step 100 ends: the rerun goes on
-    from that checkpoint exactly and logs steps 110-130 again."""
+@pytest.mark.parametrize(
+    "call",
+    [
+        # killed in update 15 (step 140), before the episode after the checkpoint of step 100 ends
+        pytest.param(15, id="inside-the-episode-after-the-checkpoint"),
+        # killed in update 18 (step 170), after the episode of steps 100-150, which the checkpoint had not seen
+        pytest.param(18, id="an-episode-past-the-checkpoint"),
+        # killed in update 5 of the 10 at step 100, before the first checkpoint, its two episodes recorded
+        pytest.param(5, id="before-any-checkpoint"),
+    ],
+)
+def test_a_resumed_collection_is_the_uninterrupted_one(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, helpers, call: int
+) -> None:
+    """The rerun goes on from the checkpoint of step 100 (or from the start) with the dataset cut back to it: it
+    logs steps 110 on again, once, and ends with the episodes and the agent of a run never stopped."""
 
     def collect(out: Path) -> None:
         collect_dreamerv2(
@@ -143,9 +186,15 @@ def test_a_resumed_collection_logs_each_record_once(tmp_path: Path, monkeypatch:
     whole = tmp_path / "whole" / "toy_reach-medium_replay.h5"
     collect(whole)
     stopped = tmp_path / "stopped" / "toy_reach-medium_replay.h5"
-    stopped_then_resumed(monkeypatch, lambda: collect(stopped), DreamerV2, "train", 15)
+    stopped_then_resumed(monkeypatch, lambda: collect(stopped), DreamerV2, "train", call)
     run = "toy_reach-medium_replay.run"
     assert records(stopped.with_name(run)) == records(whole.with_name(run))
+    assert tensorboard_points(stopped.with_name(run)) == tensorboard_points(whole.with_name(run))
+    assert helpers.episode_digests(stopped) == helpers.episode_digests(whole)
+    states = [torch.load(path.with_name(run) / "checkpoint.pt", weights_only=True) for path in (stopped, whole)]
+    for state in states:
+        del state["config"], state["metrics_mark"]
+    assert not differs(*states)  # the agent, its counters and random states
 
 
 def test_the_logger_cuts_its_file_back_only_to_a_mark_of_that_file(tmp_path: Path) -> None:
