@@ -223,10 +223,10 @@ class DreamerV2:
     def train(self, batch: Mapping[str, np.ndarray | Tensor]) -> dict[str, float]:
         """One world-model update and one actor-critic update in imagination (the latter only once
         ``train.actor_warmup`` updates are done); returns namespaced metrics."""
-        batch_t = self.to_batch(batch)
-        metrics, post = self.train_world_model(batch_t)
+        tensors = self.to_batch(batch)
+        metrics, post = self.train_world_model(tensors)
         if self.updates >= self.config.train.actor_warmup:
-            metrics.update(self.train_actor_critic(post, is_terminal=batch_t["is_terminal"]))
+            metrics.update(self.train_actor_critic(post, is_terminal=tensors["is_terminal"]))
         self.updates += 1
         return metrics
 
@@ -236,11 +236,11 @@ class DreamerV2:
         """One world-model gradient step. Returns ``(metrics, post)`` with the detached posterior (batch
         ``(B, T)``) to start imagination from. ``extra_loss`` adds weighted terms (see
         :data:`ExtraWorldModelLoss`)."""
-        batch_t = self.to_batch(batch)
+        tensors = self.to_batch(batch)
         with self._autocast():
-            terms, aux = self.model_path.loss(batch_t)
+            terms, aux = self.model_path.loss(tensors)
             loss = aux["loss"]
-            extras = extra_loss(batch_t, aux) if extra_loss is not None else {}
+            extras = extra_loss(tensors, aux) if extra_loss is not None else {}
             for term in extras.values():
                 loss = loss + term
         self.wm_opt.zero_grad(set_to_none=True)

@@ -55,14 +55,14 @@ class PenaltyDreamerV2(DreamerV2):
     def train(self, batch: Mapping[str, np.ndarray | Tensor]) -> dict[str, float]:
         """One update of the current phase: world model and heads, or the policy alone (:meth:`train_policy`) on
         the states the frozen world model observes in the batch."""
-        batch_t = self.to_batch(batch)
+        tensors = self.to_batch(batch)
         if self.model_phase:
-            metrics, post = self.train_world_model(batch_t)
+            metrics, post = self.train_world_model(tensors)
             metrics.update(self.train_ensemble(post))
         else:
             with torch.no_grad(), self._autocast():
-                post, _, _ = self.model_path.observe(batch_t, priors=False)
-            metrics = self.train_policy({key: value.detach() for key, value in post.items()}, batch_t)
+                post, _, _ = self.model_path.observe(tensors, priors=False)
+            metrics = self.train_policy({key: value.detach() for key, value in post.items()}, tensors)
         self.updates += 1
         return metrics
 

@@ -84,12 +84,12 @@ def measure_distance(
     values = []
     with torch.no_grad():
         for batch in batches:
-            batch_t = target.prepare(batch)
+            tensors = target.prepare(batch)
             if align_on == "embedding":
-                s, t = source.model_path.embed(batch_t), target.model_path.embed(batch_t)
+                s, t = source.model_path.embed(tensors), target.model_path.embed(tensors)
             else:
-                s = source.model_path.observe(batch_t, generator=generator, priors=False)[0]["logits"]
-                t = target.model_path.observe(batch_t, generator=generator, priors=False)[0]["logits"]
+                s = source.model_path.observe(tensors, generator=generator, priors=False)[0]["logits"]
+                t = target.model_path.observe(tensors, generator=generator, priors=False)[0]["logits"]
             values.append(float(domain_distance(s.float(), t.float(), align_on)))
     return float(np.mean(values))
 
