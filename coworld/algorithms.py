@@ -59,10 +59,10 @@ class Algorithm:
     None: sequences of ``train.batch_size`` x ``train.seq_len``."""
     min_seq_len: int = 1
     """The shortest ``train.seq_len`` its updates can learn from."""
-    schedule: str = "coworld"
-    """The config section of its length and its evaluation and checkpoint cadence: ``coworld`` (Alg. 1's iterations;
-    the offline DreamerV2 family take CoWorld's target updates, so they compare at equal cost) or its own (``updates``,
-    ``log_every``, ``eval_every``, ``eval_episodes``, ``checkpoint_every``)."""
+    schedule: str = "offline"
+    """The config section of its length and its log, evaluation and checkpoint cadence: ``updates``, ``log_every``,
+    ``eval_every``, ``eval_episodes`` and ``checkpoint_every`` (``offline``: the offline DreamerV2 family's, which
+    every preset sets to CoWorld's target updates; ``coworld``: Alg. 1's iterations)."""
     discount: str = "actor_critic.discount"
     """The config key of the discount its evaluation's value check compares against."""
     collaborative: bool = False
@@ -80,11 +80,12 @@ class Algorithm:
 
     def length(self, config: Any) -> str:
         """How long a run of this config trains, and the settings that say so (for messages)."""
-        if self.schedule != "coworld":
-            return f"{getattr(config, self.schedule).updates:,} updates ({self.schedule}.updates)"
         cw = config.coworld
-        text = f"{cw.iterations * cw.target_updates:,} target updates (coworld.iterations x coworld.target_updates)"
-        if self.needs_source:
+        if self.schedule == "coworld":
+            text = f"{cw.iterations * cw.target_updates:,} target updates (coworld.iterations x coworld.target_updates)"
+        else:
+            text = f"{getattr(config, self.schedule).updates:,} updates ({self.schedule}.updates)"
+        if self.needs_source:  # the same source pretraining as CoWorld's source agent
             text += f" after {cw.pretrain_steps:,} source env steps (coworld.pretrain_steps)"
         return text
 
@@ -96,6 +97,7 @@ REGISTRY: tuple[Algorithm, ...] = (
         checkpoint="coworld",
         column=99,  # last, whatever is added
         section="coworld",
+        schedule="coworld",
         source="any",
         collaborative=True,
         knobs={

@@ -374,6 +374,27 @@ class CoWorldConfig:
 
 
 @dataclass(frozen=True)
+class OfflineConfig:
+    """How long the offline DreamerV2 family trains on the target dataset (offline DreamerV2, the penalised DreamerV2,
+    LOMPO, and the fine-tuned DreamerV2's target phase), and how often it logs, evaluates and checkpoints.
+
+    Every preset gives it CoWorld's target updates (``coworld.iterations`` x ``coworld.target_updates``), evaluated
+    and checkpointed once per CoWorld iteration's worth, so the baselines and CoWorld compare at equal cost: change
+    both to keep it so."""
+
+    updates: Annotated[int, AT_LEAST_1] = 400_000
+    """Updates on dataset batches (CoWorld's 8 x 5e4 target updates)."""
+    log_every: Annotated[int, AT_LEAST_1] = 1000
+    """Updates between metric logs."""
+    eval_every: Annotated[int, AT_LEAST_1] = 50_000
+    """Updates between evaluations in the target environment (CoWorld's one per iteration)."""
+    eval_episodes: Annotated[int, AT_LEAST_1] = 5
+    """Episodes of each evaluation during training."""
+    checkpoint_every: Annotated[int, AT_LEAST_1] = 50_000
+    """Updates between checkpoints (CoWorld's one per iteration)."""
+
+
+@dataclass(frozen=True)
 class CurlConfig:
     """CURL (contrastive pixel SAC) and CURL+CQL, trained offline (the paper's model-free baselines).
 
@@ -494,7 +515,7 @@ class PenaltyConfig:
     Values from github.com/conglu1997/v-d4rl ``offlinedv2``: its ``configs.yaml`` (``rssm.ensemble: 7``,
     ``offline_model_train_steps: 25001``) and its README's DMC command (``--offline_penalty_type meandis
     --offline_lmbd 10``). The rest of the agent is this project's DreamerV2 (``world_model``, ``actor_critic``) and
-    its schedule is offline DreamerV2's (``coworld.iterations`` x ``coworld.target_updates``).
+    its schedule is offline DreamerV2's (``offline``).
     """
 
     ensemble: Annotated[int, Range(2)] = 7
@@ -512,8 +533,7 @@ class LompoConfig:
     short rollouts of an ensemble of latent dynamics, their reward lowered by the ensemble's disagreement.
 
     Values from V-D4RL's ``baselines/lompo/run.py`` (github.com/conglu1997/v-d4rl), named after its keys. The world
-    model is this project's DreamerV2 (``world_model``) and the run's length offline DreamerV2's
-    (``coworld.iterations`` x ``coworld.target_updates``).
+    model is this project's DreamerV2 (``world_model``) and the run's length offline DreamerV2's (``offline.updates``).
     """
 
     ensemble: Annotated[int, Range(2)] = 7
@@ -574,6 +594,7 @@ class Config:
     actor_critic: ActorCriticConfig = field(default_factory=ActorCriticConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
     coworld: CoWorldConfig = field(default_factory=CoWorldConfig)
+    offline: OfflineConfig = field(default_factory=OfflineConfig)
     curl: CurlConfig = field(default_factory=CurlConfig)
     seed: Annotated[int, Range(0, 2**32 - 1)] = 0
     """Seed of torch, NumPy and the environments."""
@@ -668,6 +689,11 @@ PRESETS: dict[str, dict[str, Any]] = {
         "coworld.iterations": 4,
         "coworld.target_updates": 500,
         "coworld.source_updates": 250,
+        "offline.updates": 2000,
+        "offline.log_every": 500,
+        "offline.eval_every": 500,
+        "offline.eval_episodes": 10,
+        "offline.checkpoint_every": 500,
         # LOMPO's latent actor-critic at the actor-critic's widths here; half the run's 2,000 updates for its model
         "lompo.model_updates": 1000,
         "lompo.batch_size": 64,
@@ -711,6 +737,11 @@ PRESETS: dict[str, dict[str, Any]] = {
         "coworld.iterations": 2,
         "coworld.target_updates": 20,
         "coworld.source_updates": 20,
+        "offline.updates": 40,
+        "offline.log_every": 20,
+        "offline.eval_every": 20,
+        "offline.eval_episodes": 2,
+        "offline.checkpoint_every": 20,
         "drqbc.num_filters": 8,
         "drqbc.num_layers": 2,
         "drqbc.feature_dim": 16,

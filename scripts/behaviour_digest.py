@@ -30,6 +30,10 @@ SCHEDULE = [
     "coworld.iterations=2",
     "coworld.target_updates=10",
     "coworld.source_updates=4",
+    "offline.updates=20",
+    "offline.log_every=10",
+    "offline.eval_every=10",
+    "offline.checkpoint_every=10",
 ]
 SKIPPED = {"metrics_mark"}
 

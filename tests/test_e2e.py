@@ -30,6 +30,10 @@ SCHEDULE = [
     "coworld.target_updates=4",
     "--set",
     "coworld.source_updates=4",
+    "--set",
+    "offline.updates=8",  # the baselines at CoWorld's target updates (2 x 4), a checkpoint every 4
+    "--set",
+    "offline.checkpoint_every=4",
 ]
 
 

@@ -29,8 +29,8 @@ STOP_SECONDS = 10.0
 COLLECT = "collect --task toy_reach --policy random --workers 2 --quiet".split()
 TRAIN_DV2 = (
     "train --algo dreamerv2 --target toy_reach_shifted --preset tiny --no-progress --device cpu --threads 1"
-    " --set coworld.iterations=10 --set coworld.target_updates=2 --set coworld.eval_every=1000"
-    " --set train.eval_episodes=1"
+    " --set offline.updates=20 --set offline.checkpoint_every=2 --set offline.eval_every=1000"
+    " --set offline.eval_episodes=1"
 ).split()
 CURL = (
     "train --algo {algo} --target toy_reach_shifted --preset tiny --no-progress --device cpu --threads 1"

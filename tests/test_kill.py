@@ -85,7 +85,7 @@ TRAIN = (
 ).split()
 CURL = "--algo curl --set curl.updates=150 --set curl.checkpoint_every=10 --set curl.eval_every=1000".split()
 DRQ_BC = "--algo drq-bc --set drqbc.updates=150 --set drqbc.checkpoint_every=10 --set drqbc.eval_every=1000".split()
-DREAMER_SCHEDULE = "--set coworld.iterations=10 --set coworld.target_updates=10".split()
+DREAMER_SCHEDULE = "--set offline.updates=100 --set offline.checkpoint_every=10".split()
 PENALTY = ["--algo", "dreamerv2-penalty", *DREAMER_SCHEDULE, "--set", "penalty.model_updates=15"]
 FINETUNE = ["--algo", "dreamerv2-finetune", "--source", "toy_reach", "--set", "train.prefill=100"]
 FINETUNE += ["--set", "coworld.pretrain_steps=200", *DREAMER_SCHEDULE]

@@ -20,6 +20,7 @@ SHORT = {
     "coworld": ["coworld.pretrain_steps=150", "coworld.iterations=1", "coworld.target_updates=12",
                 "coworld.source_updates=3"],
     "curl": ["curl.updates=6", "curl.eval_every=6", "curl.checkpoint_every=6", "curl.batch_size=8"],
+    "offline": ["offline.updates=12", "offline.eval_every=12", "offline.checkpoint_every=12"],
     "drqbc": ["drqbc.updates=6", "drqbc.eval_every=6", "drqbc.checkpoint_every=6", "drqbc.batch_size=8"],
 }  # fmt: skip
 """Each schedule section cut to a few updates (12 target updates: past the ensembles' 10 model updates at the tiny

@@ -30,7 +30,8 @@ DV2_COLLECT = (
 EVAL = "eval --episodes 1 --device cpu --ckpt".split()
 TRAIN_DV2 = (
     "train --algo dreamerv2 --target toy_reach_shifted --preset tiny --no-progress --device cpu --threads 1"
-    " --set coworld.iterations=2 --set coworld.target_updates=3 --set train.eval_episodes=1"
+    " --set offline.updates=6 --set offline.eval_every=3 --set offline.checkpoint_every=3"
+    " --set offline.eval_episodes=1"
 ).split()
 
 

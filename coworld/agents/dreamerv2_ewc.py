@@ -3,7 +3,7 @@ CoWorld paper's "DV2 Finetune-EWC" baseline.
 
 The run is ``dreamerv2-finetune``'s (:mod:`coworld.training.finetune`): the agent learns online in the
 source for ``coworld.pretrain_steps`` environment steps, then offline on the target dataset for
-``coworld.iterations`` x ``coworld.target_updates`` updates. Between the two,
+``offline.updates`` updates. Between the two,
 :func:`coworld.training.finetune.consolidate_on_source` calls :meth:`EwcDreamerV2.consolidate`, which takes
 the source weights ``theta*`` and estimates the diagonal Fisher information ``F`` of each network's loss on
 ``ewc.fisher_batches`` batches of the source experience (:func:`coworld.losses.ewc.fisher_diagonal`); from then
@@ -67,16 +67,16 @@ class EwcDreamerV2(DreamerV2):
         grads: dict[str, list[dict[str, Tensor]]] = {name: [] for name in NETWORKS}
         samples = 0
         for batch in batches:
-            batch_t = self.to_batch(batch)
-            samples = int(np.prod(batch_t["reward"].shape[:2]))
+            tensors = self.to_batch(batch)
+            samples = int(np.prod(tensors["reward"].shape[:2]))
             self._zero_grad()
             with self._autocast():
-                _, aux = self.model_path.loss(batch_t)
+                _, aux = self.model_path.loss(tensors)
             aux["loss"].backward()
             grads["world_model"].append(_grads(self.world_model))
             post = {key: value.detach() for key, value in aux["post"].items()}
             with frozen_parameters(self.world_model), self._autocast():
-                terminal = batch_t["is_terminal"].reshape(-1)
+                terminal = tensors["is_terminal"].reshape(-1)
                 traj = ac.imagine(self.world_model, flatten_states(post), is_terminal=terminal)
                 terms, _ = ac.losses(self.world_model, traj)
             (terms["actor"] + terms["critic"]).backward()
@@ -105,13 +105,13 @@ class EwcDreamerV2(DreamerV2):
         """DreamerV2's update, each network's loss plus its EWC term once consolidated."""
         if not self.consolidated:
             return super().train(batch)
-        batch_t = self.to_batch(batch)
-        metrics, post = self.train_world_model(batch_t, extra_loss=lambda _b, _a: {"ewc": self.penalty("world_model")})
+        tensors = self.to_batch(batch)
+        metrics, post = self.train_world_model(tensors, extra_loss=lambda _b, _a: {"ewc": self.penalty("world_model")})
         if self.updates >= self.config.train.actor_warmup:
             metrics.update(
                 self.train_actor_critic(
                     post,
-                    is_terminal=batch_t["is_terminal"],
+                    is_terminal=tensors["is_terminal"],
                     extra_loss=lambda: {"actor/ewc": self.penalty("actor"), "critic/ewc": self.penalty("critic")},
                 )
             )

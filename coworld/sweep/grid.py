@@ -287,6 +287,16 @@ ABLATION: tuple[tuple[str, tuple[str, ...]], ...] = (
 )
 """Figure 4(a): CoWorld as configured, then with each domain-collaborative term off in turn."""
 
+
+def at_equal_cost(iterations: int, target_updates: int) -> tuple[str, ...]:
+    """The ``offline`` schedule that gives the offline DreamerV2 family CoWorld's target updates (``iterations`` x
+    ``target_updates``), evaluated and checkpointed once per iteration's worth: what every table sets beside CoWorld's
+    schedule, so that they compare at equal cost."""
+    every = f"{target_updates}"
+    return (f"offline.updates={iterations * target_updates}", f"offline.eval_every={every}",
+            f"offline.checkpoint_every={every}")  # fmt: skip
+
+
 TOY_DATA = DataSpec(policy="random", episodes=20)
 """The toy target dataset: 20 episodes (1,000 steps) of uniform random actions in toy_reach_shifted."""
 
@@ -295,7 +305,10 @@ TOY_OVERRIDES = (
     "coworld.iterations=5",
     "coworld.target_updates=300",
     "coworld.source_updates=100",
+    *at_equal_cost(5, 300),
+    "offline.log_every=250",
     "train.eval_episodes=5",
+    "offline.eval_episodes=5",
     "curl.updates=3000",
     "curl.eval_every=600",
     "curl.checkpoint_every=600",
@@ -422,9 +435,11 @@ DMC_CPU_OVERRIDES = (
     "coworld.target_updates=1250",
     "coworld.source_updates=500",
     "coworld.eval_every=1",
+    *at_equal_cost(8, 1250),
     # online evaluation every 5,000 env steps (the preset's 1,000 x 10 episodes would out-step the training)
     "train.eval_every=5000",
     "train.eval_episodes=5",
+    "offline.eval_episodes=5",
     # DrQ+BC: V-D4RL's networks; batches of 64 transitions, so its 20,000 updates sample the 1.28M frames the
     # world-model agents' 10,000 batches of 8 x 16 do; its exploration std falls over the first quarter, as
     # V-D4RL's 125,000 of 550,000 updates
@@ -470,7 +485,7 @@ CAP_STUDY_VARIANTS: tuple[tuple[Any, ...], ...] = (
     ("target-policy", ("coworld.cap_critic=target_policy",)),
     ("no-align", ("coworld.align=false",)),
     ("no-align-no-cap", ("coworld.align=false", "coworld.value_reg=false")),
-    ("4x", ("coworld.target_updates=5000",), ("coworld", "dreamerv2")),
+    ("4x", ("coworld.target_updates=5000", *at_equal_cost(8, 5000)), ("coworld", "dreamerv2")),
 )
 """The arms of :func:`cap_study_table`: CoWorld as Table 3 gives it (zeta 1), with zeta 3 and 10, with the later
 paper's DMC settings, with the target-policy critic as its cap, without Eq. 3's alignment (where the cap does not
@@ -545,7 +560,12 @@ LATER_EXTRA_ALGOS = ("dreamerv2", "dreamerv2-finetune-ewc")
 without V-D4RL's penalty (the seed paper's baseline and every other table's reference) and the EWC fine-tuning (the
 later paper reports it on Meta-World only)."""
 
-LATER_DMC_OVERRIDES = (*settings_overrides("later-dmc"), "coworld.target_updates=20000", "coworld.source_updates=20000")
+LATER_DMC_OVERRIDES = (
+    *settings_overrides("later-dmc"),
+    "coworld.target_updates=20000",
+    "coworld.source_updates=20000",
+    *at_equal_cost(8, 20000),
+)
 """The later paper's Table 8, DMC column, on the ``paper`` preset: its settings (``+later-dmc``: beta2 1.5, k 0.9 in
 its Eq. 4, alpha 1, Eq. 5's eta from 1 to 0.1) and 2e4 target and 2e4 source updates per iteration."""
 

@@ -1,8 +1,9 @@
 """Offline baselines on the target dataset: offline DreamerV2 and its variants, LOMPO, CURL / CURL+CQL and DrQ+BC.
 
-Offline DreamerV2, V-D4RL's penalised DreamerV2, LOMPO and the fine-tuned DreamerV2 (with or without EWC) get the
-same number of target updates as CoWorld's target agent (``coworld.iterations * coworld.target_updates``),
-evaluated and checkpointed once per CoWorld iteration's worth of updates, so they are compared at equal cost. The
+Offline DreamerV2, V-D4RL's penalised DreamerV2, LOMPO and the fine-tuned DreamerV2 (with or without EWC) train for
+``offline.updates``, which every preset sets to CoWorld's target updates (``coworld.iterations *
+coworld.target_updates``), evaluated and checkpointed once per CoWorld iteration's worth, so they compare at equal
+cost; the model-free baselines read their own sections (``curl``, ``drqbc``). The
 fine-tuned DreamerV2 first learns online in the source task (:func:`coworld.training.finetune.
 pretrain_on_source`); with EWC it then takes its source weights and their Fisher information
 (:func:`coworld.training.finetune.consolidate_on_source`).
@@ -25,17 +26,7 @@ from coworld.training.offline import OfflineSchedule, OfflineTrainer
 
 def schedule_for(job: TrainJob) -> OfflineSchedule:
     """The run's length and cadence, from the config section its record names (:attr:`Algorithm.schedule`)."""
-    config, section = job.config, algorithm(job.algo).schedule
-    if section == "coworld":  # CoWorld's target updates, a checkpoint at the end of each iteration's worth
-        per_iteration = config.coworld.target_updates
-        return OfflineSchedule(
-            updates=config.coworld.iterations * per_iteration,
-            log_every=max(1, min(config.train.log_every, per_iteration)),
-            eval_every=per_iteration * config.coworld.eval_every,
-            eval_episodes=config.train.eval_episodes,
-            checkpoint_every=per_iteration,
-        )
-    c = getattr(config, section)
+    c = getattr(job.config, algorithm(job.algo).schedule)
     return OfflineSchedule(
         updates=c.updates,
         log_every=c.log_every,

@@ -6,8 +6,8 @@ The agent is :class:`coworld.agents.dreamerv2.DreamerV2` (with EWC :class:`cowor
    (the same pretraining CoWorld's source agent gets, so both start from equally trained source agents);
 2. with EWC, :func:`consolidate_on_source`: its source weights and their Fisher information on the source experience
    become the anchor of its later losses;
-3. it continues offline on the target dataset with offline DreamerV2's schedule (``coworld.iterations`` x
-   ``coworld.target_updates`` updates, :mod:`coworld.training.baselines`), keeping its weights and optimiser state:
+3. it continues offline on the target dataset with offline DreamerV2's schedule (``offline.updates`` updates,
+   :mod:`coworld.training.baselines`), keeping its weights and optimiser state:
    does CoWorld's collaboration add anything over reusing the source agent's weights?
 
 Both phases run in one run folder: the source phase's checkpoint in ``<run>/source/``, its experience in

@@ -26,6 +26,8 @@ SNAPSHOT = "pretrained"
 COPIED = ("source_replay.h5", "metrics.jsonl")
 """What a snapshot holds besides its checkpoint, which is written last: a snapshot with a checkpoint is whole."""
 SHARED_KEYS = frozenset(
+    {f"offline.{key}" for key in ("updates", "log_every", "eval_every", "eval_episodes", "checkpoint_every")}
+) | frozenset(
     f"coworld.{key}"
     for key in (
         # Algorithm 1's loop after pretraining
@@ -49,7 +51,8 @@ SHARED_KEYS = frozenset(
         "cap_form",
     )
 )
-"""The settings that source pretraining never reads (``coworld.cap_critic`` is not one: the target-policy critic
+"""The settings that source pretraining never reads: the offline baselines' schedule and what CoWorld does after
+pretraining (``coworld.cap_critic`` is not one: the target-policy critic
 learns from the source agent's first update on)."""
 
 

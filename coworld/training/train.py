@@ -188,11 +188,11 @@ def check_schedule(algo: str, config: Config) -> None:
     section = getattr(agent_class(algo), "section", None)  # the agents that learn an ensemble of models first
     if section is not None:
         model_updates = getattr(config, section).model_updates
-        total = config.coworld.iterations * config.coworld.target_updates
+        total = getattr(config, algorithm(algo).schedule).updates
         if model_updates >= total:
             raise CoworldError(
                 f"{section}.model_updates={model_updates} leaves none of the run's {total} updates"
-                " (coworld.iterations x coworld.target_updates) to the actor-critic; lower it or lengthen the run"
+                f" ({algorithm(algo).schedule}.updates) to the actor-critic; lower it or lengthen the run"
             )
     shortest = algorithm(algo).min_seq_len
     if config.train.seq_len < shortest:

@@ -34,8 +34,13 @@ ON = [
     "coworld.alpha=1.0",
     "coworld.zeta=3",
     "coworld.cap_form=on_mean",
+    "offline.updates=9",
+    "offline.log_every=3",
+    "offline.eval_every=3",
+    "offline.eval_episodes=1",
+    "offline.checkpoint_every=3",
 ]
-"""Every shared setting that a value changes, Eqs. 3-6 on."""
+"""Every shared setting that a value changes, Eqs. 3-6 on (and the offline baselines' schedule)."""
 OFF = [
     "coworld.iterations=1",
     "coworld.target_updates=1",

@@ -491,8 +491,8 @@ def train(dataset: Path, logdir: Path, *overrides: str, processes: ModuleType | 
     ``processes``); its logged metrics."""
     args = ["train", "--algo", "dreamerv2", "--target", "toy_reach", "--dataset", str(dataset), "--preset", "tiny"]
     args += ["--logdir", str(logdir), "--no-progress", "--device", "cpu"]
-    for item in ("coworld.iterations=1", "coworld.target_updates=2", "train.log_every=1", "train.eval_episodes=1",
-                 "train.batch_size=4", "train.seq_len=8", *overrides):  # fmt: skip
+    for item in ("offline.updates=2", "offline.log_every=1", "offline.eval_episodes=1", "train.batch_size=4",
+                 "train.seq_len=8", *overrides):  # fmt: skip
         args += ["--set", item]
     if processes is not None:
         done = processes.run_cli(*args)

@@ -107,8 +107,7 @@ def test_train_force_starts_a_run_folder_of_other_settings_over(tmp_path, toy_da
     code, out = cli(*args[:-2], "--set", "train.seq_len=4")
     line = one_line(code, out, "other settings", "--force")
     assert "--logdir" in line
-    code, out = cli(*args, "--force", "--set", "coworld.iterations=1", "--set", "coworld.target_updates=2",
-                    "--set", "train.eval_episodes=1")  # fmt: skip
+    code, out = cli(*args, "--force", "--set", "offline.updates=2", "--set", "offline.eval_episodes=1")
     assert code == 0, out
     assert "--force: starting" in out and (run / "notes.txt").read_text() == "mine"
     assert json.loads((run / "config.json").read_text())["train"]["seq_len"] == 8

@@ -255,7 +255,7 @@ def test_sequences_longer_than_every_episode_are_warned_of(toy_dataset) -> None:
 @pytest.mark.parametrize(
     ("algo", "length"),
     [
-        ("dreamerv2", "dreamerv2 makes 40 target updates (coworld.iterations x coworld.target_updates)"),
+        ("dreamerv2", "dreamerv2 makes 40 updates (offline.updates)"),
         ("coworld", "coworld makes 40 target updates (coworld.iterations x coworld.target_updates) after 1,000 source"),
         ("drq-bc", "drq-bc makes 200 updates (drqbc.updates)"),
     ],

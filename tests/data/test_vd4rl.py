@@ -324,7 +324,7 @@ def imported_walker(tmp_path_factory: pytest.TempPathFactory) -> Path:
 @pytest.mark.parametrize(
     ("algo", "schedule"),
     [
-        ("dreamerv2", ["--set", "coworld.iterations=1", "--set", "coworld.target_updates=3"]),
+        ("dreamerv2", ["--set", "offline.updates=3", "--set", "offline.checkpoint_every=3"]),
         ("drq-bc", ["--set", "drqbc.updates=3", "--set", "drqbc.eval_every=3", "--set", "drqbc.checkpoint_every=3"]),
         pytest.param(
             "curl-cql",

@@ -85,7 +85,8 @@ def test_toy_cpu_table_uses_the_cpu_preset_and_a_dreamerv2_medium_replay_target(
     # Every override names a real config key with a value in range on the cpu preset.
     config = make_config("cpu", list(spec.overrides))
     assert config.curl.updates == 3000 and config.curl.hidden == 64 and config.penalty.ensemble == 3
-    assert config.lompo.model_updates == 1000 < config.coworld.iterations * config.coworld.target_updates
+    assert config.lompo.model_updates == 1000 < config.offline.updates
+    assert config.offline.updates == config.coworld.iterations * config.coworld.target_updates  # at equal cost
     # The model-free baselines take the toy table's networks and batch, not the cpu preset's (the paper's).
     tiny = make_config("tiny")
     assert config.curl.batch_size == tiny.curl.batch_size < make_config("cpu").curl.batch_size
@@ -433,6 +434,7 @@ def test_the_cap_study_runs_each_arm_on_dmc_cpus_cheetah_pair() -> None:
     assert config("coworld", "no-align-no-cap").coworld == control
     for algo in ("coworld", "dreamerv2"):  # 4x the target updates, the rest as dmc-cpu
         assert config(algo, "4x").coworld.target_updates == 4 * config(algo, "").coworld.target_updates
+        assert config(algo, "4x").offline.updates == 4 * config(algo, "").offline.updates
     assert config("dreamerv2-penalty", "").penalty.model_updates == 2_500  # a quarter of its 10,000 updates
     assert config("coworld", "").coworld.cap_form == "on_mean"  # the form the committed study ran
 

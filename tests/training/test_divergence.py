@@ -269,7 +269,7 @@ def test_offline_dreamerv2_refuses_to_checkpoint_weights_its_last_update_made_no
     tmp_path: Path, toy_dataset_writer, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """The update before a checkpoint reports a finite loss and leaves NaN weights: the checkpoint is refused, and the
-    one before it kept (the offline run checkpoints every ``coworld.target_updates`` = 2 of its 6 updates)."""
+    one before it kept (the offline run checkpoints every ``offline.checkpoint_every`` = 2 of its 6 updates)."""
     dataset = toy_dataset_writer(tmp_path / "target.h5", "toy_reach_shifted", episodes=3)
     poison_after(monkeypatch, DreamerV2, "train", 4, reward_head)
     logdir = tmp_path / "run"
@@ -282,7 +282,7 @@ def test_offline_dreamerv2_refuses_to_checkpoint_weights_its_last_update_made_no
         logdir=logdir,
         seed=0,
         device="cpu",
-        overrides=[*COWORLD, "coworld.iterations=3", "coworld.eval_every=100"],
+        overrides=[*COWORLD, "offline.updates=6", "offline.checkpoint_every=2", "offline.eval_every=100"],
     )
     expected = (
         r"^the agent's weights became non-finite by update 4 \(offline training\): agent/world_model/reward_head\S* "

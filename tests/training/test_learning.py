@@ -133,7 +133,8 @@ def test_tiny_dreamerv2_finetune_transfers_to_the_shifted_target(tmp_path, toy_d
     """DreamerV2 pretrained online in toy_reach (1,300 steps, as test_tiny_dreamerv2_learns_toy_reach) and fine-tuned
     200 updates on 20 random toy_reach_shifted episodes, through `coworld train`, beats a random policy there."""
     sets = ["train.train_every=2", "train.eval_every=100000", "train.eval_episodes=10", "coworld.pretrain_steps=1300"]
-    sets += ["coworld.iterations=1", "coworld.target_updates=200"]
+    sets += ["offline.updates=200", "offline.eval_every=200", "offline.checkpoint_every=200"]
+    sets += ["offline.eval_episodes=10"]
     target = _train_offline_on_the_shifted_target(
         tmp_path, toy_dataset_writer, "dreamerv2-finetune", sets, source="toy_reach"
     )
@@ -148,7 +149,8 @@ def test_tiny_dreamerv2_penalty_learns_the_shifted_target_offline(tmp_path, toy_
     reward. It beats a random policy there (the first evaluation, after the world-model updates, is the untrained
     actor's)."""
     sets = ["train.eval_every=100000", "train.eval_episodes=10", "penalty.model_updates=300", "penalty.ensemble=3"]
-    sets += ["coworld.iterations=2", "coworld.target_updates=300"]
+    sets += ["offline.updates=600", "offline.eval_every=300", "offline.checkpoint_every=300"]
+    sets += ["offline.eval_episodes=10"]
     target = _train_offline_on_the_shifted_target(tmp_path, toy_dataset_writer, "dreamerv2-penalty", sets)
     random = _random_return_on_the_shifted_target()
     print(f"penalised DreamerV2 on toy_reach_shifted: evaluations {target}, random {random:.1f}")
@@ -167,7 +169,8 @@ def test_tiny_lompo_learns_the_shifted_target_offline(tmp_path, toy_dataset_writ
     1,200 (900 of the actor-critic) gave 28.3 on seed 0 but 2.7 on seed 1. At V-D4RL's weight 5 the penalty
     (5 x 0.1 a step) outweighs the toy's rewards (0.1 a step): after 300 actor-critic updates, 2.1."""
     sets = ["train.eval_every=100000", "train.eval_episodes=10", "lompo.model_updates=300", "lompo.ensemble=3"]
-    sets += ["lompo.weight=1", "coworld.iterations=2", "coworld.target_updates=1000"]
+    sets += ["lompo.weight=1", "offline.updates=2000", "offline.eval_every=1000", "offline.checkpoint_every=1000"]
+    sets += ["offline.eval_episodes=10"]
     target = _train_offline_on_the_shifted_target(tmp_path, toy_dataset_writer, "lompo", sets)
     random = _random_return_on_the_shifted_target()
     print(f"LOMPO on toy_reach_shifted: evaluations {target}, random {random:.1f}")
@@ -180,7 +183,8 @@ def test_tiny_dreamerv2_finetune_ewc_transfers_to_the_shifted_target(tmp_path, t
     with EWC 200 updates on 20 random toy_reach_shifted episodes, through `coworld train`: it beats a random policy
     there (the dreamerv2-finetune test's setting)."""
     sets = ["train.train_every=2", "train.eval_every=100000", "train.eval_episodes=10", "coworld.pretrain_steps=1300"]
-    sets += ["coworld.iterations=1", "coworld.target_updates=200"]
+    sets += ["offline.updates=200", "offline.eval_every=200", "offline.checkpoint_every=200"]
+    sets += ["offline.eval_episodes=10"]
     target = _train_offline_on_the_shifted_target(
         tmp_path, toy_dataset_writer, "dreamerv2-finetune-ewc", sets, source="toy_reach"
     )

@@ -42,10 +42,13 @@ COWORLD = (
     "coworld.iterations=2",
     "coworld.target_updates=2",
     "coworld.source_updates=15",
+    *("offline.updates=4", "offline.log_every=2", "offline.eval_every=2", "offline.checkpoint_every=2"),
+    "offline.eval_episodes=1",
 )
 """13 pretraining source updates (a source checkpoint at step 50, after 3), then 2 iterations of 2 target and 15
 source updates, a record every 5 steps and every target update."""
 EVERY_UPDATE = ("coworld.target_updates=4", "train.log_every=1")
+EVERY_UPDATE += ("offline.updates=8", "offline.log_every=1", "offline.eval_every=4", "offline.checkpoint_every=4")
 """An offline run of 8 updates, a record at every one and a checkpoint at every 4th."""
 FIRST_AT_100 = ("train.checkpoint_every=100",)
 """Source pretraining's first checkpoint at its end, step 100."""

@@ -107,6 +107,8 @@ def test_offline_dreamerv2_and_coworld_runs_write_strips(tmp_path, target_datase
         "coworld.iterations=1",
         "coworld.target_updates=2",
         "coworld.source_updates=2",
+        "offline.updates=2",
+        "offline.eval_episodes=1",
         "train.batch_size=4",
     ]
     for algo in ("dreamerv2", "coworld"):
