@@ -11,14 +11,14 @@ Both agents are DreamerV2 (:class:`coworld.agents.dreamerv2.DreamerV2`). The thr
   agent's imagined states, ``v_S`` being the source critic fed the target features (with
   ``coworld.cap_critic='target_policy'``, a critic of the target actor in the source world model instead:
   :class:`~coworld.agents.policy_value.PolicyValue`);
-* source world-model step (lines 17-20, Eqs. 4-5): the source model is also run over a target batch and its
-  reward head regresses Eq. 4's relabelled reward (:func:`relabel_reward`), the two batches' terms joined as
-  ``coworld.reward_mix`` says (:func:`reward_mix_eta`).
+* source world-model step (lines 17-20, Eqs. 4-5): the source model is also run over the target batch the schedule
+  passes with the source batch, and its reward head regresses Eq. 4's relabelled reward (:func:`relabel_reward`),
+  the two batches' terms joined as ``coworld.reward_mix`` says (:func:`reward_mix_eta`).
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterator, Mapping
+from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
@@ -98,11 +98,9 @@ class CoWorld:
                 self.policy_value = PolicyValue(
                     config=config, feat_size=feat_size, action_size=action_size, device=self.device
                 )
-        self.target_batches: Iterator[dict[str, Any]] | None = None
-        """Target-dataset batches for the source agent's relabelled-reward term (set by the schedule)."""
         self.relabelled = 0
-        """Source updates made with a target batch (Eqs. 4-5) so far: what Eq. 5's ``eta`` follows (set by the
-        schedule on resume)."""
+        """Source updates made with a target batch (Eqs. 4-5) so far: what Eq. 5's ``eta`` follows (a CoWorld
+        checkpoint holds it)."""
 
     # -- the target agent's update (Alg. 1 lines 7-11) ------------------------------------------------------------
     def train_target(self, batch: Mapping[str, Any]) -> dict[str, float]:
@@ -171,14 +169,19 @@ class CoWorld:
             post, _, _ = path.observe(batch, generator=generator, priors=False)
             return post["logits"]
 
-    # -- the source agent's update (Alg. 1 lines 16-21) -----------------------------------------------------------
-    def train_source(self, batch: Mapping[str, np.ndarray]) -> dict[str, float]:
-        """One source world-model step (with Eqs. 4-5 on a target batch) and one source actor-critic step (once the
-        source agent has made ``train.actor_warmup`` updates, pretraining included)."""
+    # -- the source agent's update (Alg. 1 lines 17-21) -----------------------------------------------------------
+    def train_source(
+        self, batch: Mapping[str, np.ndarray], target_batch: Mapping[str, Any] | None = None
+    ) -> dict[str, float]:
+        """One source world-model step on a source batch ``(B, T, ...)``, with Eqs. 4-5 on ``target_batch`` (a target
+        dataset batch, :class:`TargetBatches`' or as the dataset gives it; None: none, as while the source agent
+        pretrains, or where ``coworld.reward_relabel`` is off), and one source actor-critic step (once the source
+        agent has made ``train.actor_warmup`` updates, pretraining included). Its metrics are named as
+        :meth:`DreamerV2.train` names them; the source agent's online trainer logs them under ``source/``."""
         cfg = self.config.coworld
         extra, seen = None, {}
-        if cfg.reward_relabel and self.target_batches is not None:
-            target_batch = self.source.to_batch(next(self.target_batches))
+        if cfg.reward_relabel and target_batch is not None:
+            target_batch = self.source.to_batch(target_batch)
 
             def extra(source_batch: dict[str, Tensor], aux: dict[str, Any]) -> dict[str, Tensor]:
                 post, _, _ = self.source.model_path.observe(target_batch, priors=False)
@@ -216,7 +219,7 @@ class CoWorld:
                     )
                 )
         self.source.updates += 1
-        return {f"source/{key}": value for key, value in metrics.items()}
+        return metrics
 
     # -- acting (the target agent acts in the target domain) --------------------------------------------------------
     def policy(self, obs: np.ndarray, state: Any = None, mode: str = "eval", is_first: np.ndarray | None = None):
@@ -247,3 +250,28 @@ class CoWorld:
         self.source.load_state_dict(state["source"])
         if self.policy_value is not None:
             self.policy_value.load_state_dict(state["policy_value"])
+
+
+class TargetBatches:
+    """The target dataset's batches as CoWorld's updates read them (a ``prepare`` for
+    :class:`~coworld.data.prefetch.Prefetcher`): each :meth:`DreamerV2.prepare`-d by the target agent, and the first
+    ``aligned`` with their :meth:`CoWorld.source_alignment` under :data:`ALIGN_SOURCE` (where ``coworld.align`` is on).
+
+    A target phase's batches can carry the source model's pass because the source model does not change until
+    the phase ends (its ``aligned`` batches are the phase's own); made ahead, the pass runs on the prefetch
+    thread while the target update before runs. Its latent samples draw from a generator of their own, seeded
+    with ``seed``, so a run makes the same passes with prefetching on or off, and a resumed phase those of an
+    uninterrupted one.
+    """
+
+    def __init__(self, coworld: CoWorld, *, aligned: int, seed: int) -> None:
+        self.coworld = coworld
+        self.aligned = aligned if coworld.config.coworld.align else 0
+        self.generator = torch.Generator(coworld.device).manual_seed(seed)
+
+    def __call__(self, batch: Mapping[str, np.ndarray]) -> dict[str, Tensor]:
+        batch_t = self.coworld.target.prepare(batch)
+        if self.aligned > 0:
+            self.aligned -= 1
+            batch_t = {**batch_t, ALIGN_SOURCE: self.coworld.source_alignment(batch_t, self.generator)}
+        return batch_t
