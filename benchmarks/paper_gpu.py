@@ -161,10 +161,10 @@ def part_update(args: argparse.Namespace, mode: str) -> None:
     pair = CoWorld(config=config, action_size=args.action_size, device=device)
     if mode.endswith("phases"):
         with_phases(pair.source), with_phases(pair.target)
-    pair.target_batches = iter(lambda: batch, None)  # the relabelled-reward pass's target batches
     time_update("coworld target", mode, lambda: pair.train_target(batch), device, args.warmup, args.updates)
     _reset_memory(device)
-    time_update("coworld source", mode, lambda: pair.train_source(batch), device, args.warmup, args.updates)
+    # the same batch as the relabelled-reward pass's target batch
+    time_update("coworld source", mode, lambda: pair.train_source(batch, batch), device, args.warmup, args.updates)
 
 
 def part_act(args: argparse.Namespace) -> None:

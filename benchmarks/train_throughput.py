@@ -170,10 +170,9 @@ def measure_others(preset: str, device: str, warmup: int, repeats: int, action_s
     dev = resolve_device(device)
     coworld = CoWorld(config=config, action_size=action_size, device=dev)
     batch = random_batch(config.train.batch_size, config.train.seq_len, action_size)
-    coworld.target_batches = iter(lambda: batch, None)
     out = [
         ("coworld target update", _median_time(lambda: coworld.train_target(batch), dev, warmup, repeats)),
-        ("coworld source update", _median_time(lambda: coworld.train_source(batch), dev, warmup, repeats)),
+        ("coworld source update", _median_time(lambda: coworld.train_source(batch, batch), dev, warmup, repeats)),
     ]
     c = config.curl
     rng = np.random.default_rng(0)
@@ -215,9 +214,8 @@ def worker(args: argparse.Namespace) -> None:
         from coworld.agents.coworld import CoWorld
 
         pair = CoWorld(config=config, action_size=args.action_size, device=resolve_device(args.device))
-        pair.target_batches = iter(lambda: batch, None)
         updates["coworld target"] = lambda: pair.train_target(batch)
-        updates["coworld source"] = lambda: pair.train_source(batch)
+        updates["coworld source"] = lambda: pair.train_source(batch, batch)
     out: dict[str, object] = {"coworld": str(Path(coworld.__file__).parent.parent)}
     warmup_s, flops, ops = {}, {}, {}
     for name, update in updates.items():

@@ -9,7 +9,7 @@ checkpoint, so that a change which should not alter behaviour can be shown not t
 Each algorithm trains on one random toy_reach_shifted dataset (5 episodes, seed 0), with toy_reach as the source
 where it takes one; the online DreamerV2 collector is digested as ``collect``. Left out of a digest: where the
 metrics log stood (``metrics_mark``, a byte offset into a log of wall times) and the saved config's text of where the
-run came from.
+run came from; ``--skip KEY`` leaves out more (a change that adds a checkpoint entry shows the rest unchanged).
 """
 
 from __future__ import annotations
@@ -69,7 +69,15 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--dir", type=Path, required=True, help="an empty or new folder for the runs")
     parser.add_argument("--algos", default="", help="comma-separated; default every algorithm and the collector")
+    parser.add_argument(
+        "--skip",
+        action="append",
+        default=[],
+        metavar="KEY",
+        help="leave the entries named KEY (at any depth) out of the digests too: a checkpoint entry a change added",
+    )
     args = parser.parse_args()
+    SKIPPED.update(args.skip)
     from coworld.algorithms import ALGOS, algorithm
 
     chosen = args.algos.split(",") if args.algos else ["collect", *ALGOS]

@@ -11,14 +11,14 @@ Both agents are DreamerV2 (:class:`coworld.agents.dreamerv2.DreamerV2`). The thr
   agent's imagined states, ``v_S`` being the source critic fed the target features (with
   ``coworld.cap_critic='target_policy'``, a critic of the target actor in the source world model instead:
   :class:`~coworld.agents.policy_value.PolicyValue`);
-* source world-model step (lines 17-20, Eqs. 4-5): the source model is also run over a target batch and its
-  reward head regresses Eq. 4's relabelled reward (:func:`relabel_reward`), the two batches' terms joined as
-  ``coworld.reward_mix`` says (:func:`reward_mix_eta`).
+* source world-model step (lines 17-20, Eqs. 4-5): the source model is also run over the target batch the schedule
+  passes with the source batch, and its reward head regresses Eq. 4's relabelled reward (:func:`relabel_reward`),
+  the two batches' terms joined as ``coworld.reward_mix`` says (:func:`reward_mix_eta`).
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterator, Mapping
+from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
@@ -98,34 +98,32 @@ class CoWorld:
                 self.policy_value = PolicyValue(
                     config=config, feat_size=feat_size, action_size=action_size, device=self.device
                 )
-        self.target_batches: Iterator[dict[str, Any]] | None = None
-        """Target-dataset batches for the source agent's relabelled-reward term (set by the schedule)."""
         self.relabelled = 0
-        """Source updates made with a target batch (Eqs. 4-5) so far: what Eq. 5's ``eta`` follows (set by the
-        schedule on resume)."""
+        """Source updates made with a target batch (Eqs. 4-5) so far: what Eq. 5's ``eta`` follows (a CoWorld
+        checkpoint holds it)."""
 
     # -- the target agent's update (Alg. 1 lines 7-11) ------------------------------------------------------------
     def train_target(self, batch: Mapping[str, Any]) -> dict[str, float]:
         """One target world-model step with Eq. 3 and one target actor-critic step with Eq. 6 (the latter, as in
         :meth:`DreamerV2.train`, only once the target agent has made ``train.actor_warmup`` updates)."""
         cfg = self.config.coworld
-        batch_t = self.target.prepare(batch)  # laid out once for both world models
+        target_tensors = self.target.prepare(batch)  # laid out once for both world models
         extra = None
         if cfg.align:
-            source = batch_t.get(ALIGN_SOURCE)
+            source = target_tensors.get(ALIGN_SOURCE)
             if source is None:
-                source = self.source_alignment(batch_t)
+                source = self.source_alignment(target_tensors)
 
             def extra(_: dict[str, Tensor], aux: dict[str, Any]) -> dict[str, Tensor]:
                 target = aux["post"]["logits"] if cfg.align_on == "latent" else aux["embed"]
                 return {"align": cfg.beta2 * alignment_term(source, target, cfg.align_on)}
 
-        metrics, post = self.target.train_world_model(batch_t, extra)
+        metrics, post = self.target.train_world_model(target_tensors, extra)
         if cfg.align:
             metrics["coworld/align_kl"] = metrics.pop("wm/align") / cfg.beta2
         objective = self._capped_critic_objective() if cfg.value_reg else None
         if self.target.updates >= self.config.train.actor_warmup:  # as DreamerV2.train: the world model alone first
-            metrics.update(self.target.train_actor_critic(post, objective, is_terminal=batch_t["is_terminal"]))
+            metrics.update(self.target.train_actor_critic(post, objective, is_terminal=target_tensors["is_terminal"]))
         self.target.updates += 1
         return {f"target/{key}": value for key, value in metrics.items()}
 
@@ -171,14 +169,19 @@ class CoWorld:
             post, _, _ = path.observe(batch, generator=generator, priors=False)
             return post["logits"]
 
-    # -- the source agent's update (Alg. 1 lines 16-21) -----------------------------------------------------------
-    def train_source(self, batch: Mapping[str, np.ndarray]) -> dict[str, float]:
-        """One source world-model step (with Eqs. 4-5 on a target batch) and one source actor-critic step (once the
-        source agent has made ``train.actor_warmup`` updates, pretraining included)."""
+    # -- the source agent's update (Alg. 1 lines 17-21) -----------------------------------------------------------
+    def train_source(
+        self, batch: Mapping[str, np.ndarray], target_batch: Mapping[str, Any] | None = None
+    ) -> dict[str, float]:
+        """One source world-model step on a source batch ``(B, T, ...)``, with Eqs. 4-5 on ``target_batch`` (a target
+        dataset batch, :class:`TargetBatches`' or as the dataset gives it; None: none, as while the source agent
+        pretrains, or where ``coworld.reward_relabel`` is off), and one source actor-critic step (once the source
+        agent has made ``train.actor_warmup`` updates, pretraining included). Its metrics are named as
+        :meth:`DreamerV2.train` names them; the source agent's online trainer logs them under ``source/``."""
         cfg = self.config.coworld
         extra, seen = None, {}
-        if cfg.reward_relabel and self.target_batches is not None:
-            target_batch = self.source.to_batch(next(self.target_batches))
+        if cfg.reward_relabel and target_batch is not None:
+            target_batch = self.source.to_batch(target_batch)
 
             def extra(source_batch: dict[str, Tensor], aux: dict[str, Any]) -> dict[str, Tensor]:
                 post, _, _ = self.source.model_path.observe(target_batch, priors=False)
@@ -194,8 +197,8 @@ class CoWorld:
                 source_term = reward_loss(aux["reward_head"], source_batch["reward"].float()).mean()
                 return {"relabel": (1.0 - eta) * scale * target_term, "eta_mix": (eta - 1.0) * scale * source_term}
 
-        batch_t = self.source.to_batch(batch)
-        metrics, post = self.source.train_world_model(batch_t, extra)
+        source_tensors = self.source.to_batch(batch)
+        metrics, post = self.source.train_world_model(source_tensors, extra)
         if seen:
             metrics.pop("wm/relabel")
             metrics.pop("wm/eta_mix", None)
@@ -204,19 +207,19 @@ class CoWorld:
                 metrics["coworld/eta"] = seen["eta"]
             self.relabelled += 1
         if self.source.updates >= self.config.train.actor_warmup:
-            metrics.update(self.source.train_actor_critic(post, is_terminal=batch_t["is_terminal"]))
+            metrics.update(self.source.train_actor_critic(post, is_terminal=source_tensors["is_terminal"]))
             if self.policy_value is not None:
                 metrics.update(
                     self.policy_value.train(
                         self.source.world_model,
                         self.target.actor_critic.actor,
                         post,
-                        is_terminal=batch_t["is_terminal"],
+                        is_terminal=source_tensors["is_terminal"],
                         step=self.source.updates,
                     )
                 )
         self.source.updates += 1
-        return {f"source/{key}": value for key, value in metrics.items()}
+        return metrics
 
     # -- acting (the target agent acts in the target domain) --------------------------------------------------------
     def policy(self, obs: np.ndarray, state: Any = None, mode: str = "eval", is_first: np.ndarray | None = None):
@@ -247,3 +250,28 @@ class CoWorld:
         self.source.load_state_dict(state["source"])
         if self.policy_value is not None:
             self.policy_value.load_state_dict(state["policy_value"])
+
+
+class TargetBatches:
+    """The target dataset's batches as CoWorld's updates read them (a ``prepare`` for
+    :class:`~coworld.data.prefetch.Prefetcher`): each :meth:`DreamerV2.prepare`-d by the target agent, and the first
+    ``aligned`` with their :meth:`CoWorld.source_alignment` under :data:`ALIGN_SOURCE` (where ``coworld.align`` is on).
+
+    A target phase's batches can carry the source model's pass because the source model does not change until
+    the phase ends (its ``aligned`` batches are the phase's own); made ahead, the pass runs on the prefetch
+    thread while the target update before runs. Its latent samples draw from a generator of their own, seeded
+    with ``seed``, so a run makes the same passes with prefetching on or off, and a resumed phase those of an
+    uninterrupted one.
+    """
+
+    def __init__(self, coworld: CoWorld, *, aligned: int, seed: int) -> None:
+        self.coworld = coworld
+        self.aligned = aligned if coworld.config.coworld.align else 0
+        self.generator = torch.Generator(coworld.device).manual_seed(seed)
+
+    def __call__(self, batch: Mapping[str, np.ndarray]) -> dict[str, Tensor]:
+        tensors = self.coworld.target.prepare(batch)
+        if self.aligned > 0:
+            self.aligned -= 1
+            tensors = {**tensors, ALIGN_SOURCE: self.coworld.source_alignment(tensors, self.generator)}
+        return tensors

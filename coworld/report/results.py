@@ -138,7 +138,7 @@ def find_run_dirs(root: str | Path, problems: list[str] | None = None) -> list[P
         raise CoworldError(f"{root} is not a folder; pass a sweep folder or a folder of runs made by `coworld train`")
     found = []
     for path in sorted(root.rglob("run.json")):
-        info = run_description(_json_object(path, problems if problems is not None else []))
+        info = run_description(_json_object(path, problems if problems is not None else []), path)
         if info is not None and isinstance(info.get("algo"), str) and isinstance(info.get("target"), str):
             found.append(path.parent)  # a training run, or the online dreamerv2 run of a collection
     return found
@@ -476,7 +476,7 @@ def load_result(run_dir: Path, qualities: dict[str, str | None] | None = None) -
 def _load(run_dir: Path, qualities: dict[str, str | None] | None) -> tuple[RunResult, Settings]:
     """:func:`load_result`, and what made the run (:func:`coworld.report.arms.run_settings`)."""
     problems: list[str] = []
-    info = run_description(_json_object(run_dir / "run.json", problems)) or {}
+    info = run_description(_json_object(run_dir / "run.json", problems), run_dir / "run.json") or {}
     algo, target = str(info["algo"]), str(info["target"])
     if info.get("online"):
         algo = ONLINE_ALGO  # the agent a `coworld collect --policy dreamerv2` trained in the target task itself

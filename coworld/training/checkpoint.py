@@ -15,7 +15,7 @@ import math
 import os
 import random
 import warnings
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import IO, Any
 
@@ -25,6 +25,7 @@ import torch
 from coworld.config import to_dict
 from coworld.errors import CheckpointError, NonFiniteCheckpoint, StorageError
 from coworld.storage import WRITE_ERRNOS, failure_errno, failure_reason
+from coworld.training.description import EARLIER_RELEASE
 
 CHECKPOINT_NAME = "checkpoint.pt"
 
@@ -206,6 +207,17 @@ def read_run_checkpoint(path: Path, agent: Any, kind: str, keys: tuple[str, ...]
     if state.get("kind") != kind:
         raise CheckpointError(f"{path} is a {state.get('kind')!r} checkpoint, not {kind!r}")
     return state
+
+
+def refuse_earlier_format(path: Path, state: Mapping[str, Any], entries: Sequence[str]) -> None:
+    """Refuse, in one CheckpointError line that says what to do, a checkpoint at ``path`` written before the format
+    this release writes: one without all of ``entries``."""
+    missing = [key for key in entries if key not in state]
+    if missing:
+        raise CheckpointError(
+            f"{path} was written by an earlier coworld (no {', '.join(map(repr, missing))} entry), which this one does"
+            f" not resume: train the run again (--force), or resume it with {EARLIER_RELEASE}"
+        )
 
 
 def restore_agent(agent: Any, state: dict[str, Any], path: Path, what: str) -> None:

@@ -44,7 +44,6 @@ from tqdm import tqdm
 
 from coworld import interrupt
 from coworld.agents.coworld import CoWorld
-from coworld.agents.coworld_feeds import SourceLearner
 from coworld.agents.dreamerv2 import DreamerV2
 from coworld.config import Config, to_dict
 from coworld.envs import task_spec
@@ -231,13 +230,14 @@ def _pretrain(job: Any, name: str, device: torch.device, progress: bool) -> CoWo
     )
     with Logger(folder) as logger:
         pretrain_source(
-            SourceLearner(candidate),
+            candidate.source,
             name,
             config=config,
             logdir=folder,
             logger=logger,
             algorithm="coworld",
             phase=phase,
+            train=candidate.train_source,
             progress=progress,
             cut_episodes=False,
         )

@@ -3,27 +3,34 @@
 The paper's Algorithm 1, line by line, and where each line runs (the update steps themselves are
 :class:`coworld.agents.coworld.CoWorld`'s)::
 
-    3   Pretrain the source domain agent                        Algorithm1.pretrain_source
-    4   while not converged do                                  Algorithm1.run: coworld.iterations iterations
-    5-12    for k_t = 1 .. K1: draw a target batch,              Algorithm1.target_phase: K1 = coworld.target_updates
-            Eq. 3 world model, Eq. 6 critic, actor               (CoWorld.train_target)
-    14-22   for k_s = 1 .. K2: draw a source batch,              Algorithm1.source_phase: K2 = coworld.source_updates
-            Eqs. 4-5 reward, world model, actor-critic,          (CoWorld.train_source), with source environment
-            append B_S by acting in the source environment       steps at the train ratio between updates
+    3       Pretrain the source domain agent                     Algorithm1.pretrain_source
+    4       while not converged do                               Algorithm1.run: coworld.iterations iterations
+    5       for k_t = 1 .. K1 do                                 Algorithm1.target_phase: K1 = coworld.target_updates
+    6           draw a target batch from B_T                     next(target_batches)
+    7-11        Eq. 3 world model, imagine, Eq. 6 critic, actor  CoWorld.train_target
+    15      for k_s = 1 .. K2 do                                 Algorithm1.source_phase: K2 = coworld.source_updates
+    22          append B_S by acting in the source environment   OnlineTrainer.act (see below)
+    16          draw a source batch from B_S                     OnlineTrainer.sample
+                (and a target batch from B_T, for Eq. 4)         next(target_batches)
+    17-21       Eq. 4, Eq. 5, dynamics, actor-critic             CoWorld.train_source
 
-An iteration's target batches come from one stream seeded by (seed, iteration): the target phase takes the first
-K1, the source phase's relabelling the next. Source episodes run on across phase boundaries. A checkpoint is
-written after every phase, its :class:`Progress` naming the next, with the source agent's online state (its running
-episodes among it), so a stopped run resumes at that phase's start with its source replay cut back to the checkpoint
-and goes on exactly as an uninterrupted one (the same batches, source steps and weights); stopped while pretraining,
-it resumes that way from the last source checkpoint (:meth:`~coworld.training.online.OnlineTrainer.restore`).
-Runs that differ only in what the target phases read can share one pretraining (:mod:`coworld.training.pretrained`).
+Line 22 is the interaction between two source updates: the source environment steps that make the next update due
+at the train ratio (one update every ``train.train_every`` steps, as in the pretraining), so each source batch is
+drawn from B_S as those steps left it. An iteration's target batches come from one stream seeded by (seed,
+iteration): the target phase takes the first K1, the source phase's the next K2. Source episodes run on across
+phase boundaries. A checkpoint is written after every phase, its :class:`Progress` naming the next, with the source
+agent's online state (its running episodes among it), so a stopped run resumes at that phase's start with its
+source replay cut back to the checkpoint and goes on exactly as an uninterrupted one (the same batches, source steps
+and weights); stopped while pretraining, it resumes that way from the last source checkpoint
+(:meth:`~coworld.training.online.OnlineTrainer.restore`). Runs that differ only in what the target phases read can
+share one pretraining (:mod:`coworld.training.pretrained`).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import sys
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -32,8 +39,7 @@ import torch
 from tqdm import tqdm
 
 from coworld import interrupt
-from coworld.agents.coworld import CoWorld
-from coworld.agents.coworld_feeds import SourceLearner, TargetBatches
+from coworld.agents.coworld import CoWorld, TargetBatches
 from coworld.config import to_dict
 from coworld.data import open_dataset
 from coworld.data.prefetch import Prefetcher, stop_prefetch
@@ -41,7 +47,14 @@ from coworld.envs import task_spec
 from coworld.errors import CheckpointError
 from coworld.progress import progress_bar
 from coworld.training import pretrained
-from coworld.training.checkpoint import CHECKPOINT_NAME, load_checkpoint, rng_state, save_checkpoint, set_rng_state
+from coworld.training.checkpoint import (
+    CHECKPOINT_NAME,
+    load_checkpoint,
+    refuse_earlier_format,
+    rng_state,
+    save_checkpoint,
+    set_rng_state,
+)
 from coworld.training.choice import restore_warm_target, settle_source
 from coworld.training.divergence import Phase
 from coworld.training.evaluate import evaluate
@@ -52,9 +65,9 @@ from coworld.training.openloop import log_open_loop
 
 CHECKPOINT_KIND = "coworld"
 CHECKPOINT_KEYS = ("agent", "source", "source_updates", "progress", "rng")
-"""What a CoWorld checkpoint holds beyond its kind (:meth:`Algorithm1.save`)."""
-UNBOUNDED = 2**62
-"""A source phase ends by pausing after K2 updates, never at a step limit."""
+"""What a CoWorld checkpoint holds beyond its kind (:meth:`Algorithm1.checkpoint`), with :data:`FORMAT_KEYS`."""
+FORMAT_KEYS = ("source_online", "relabelled")
+"""The entries this release's CoWorld checkpoints hold that earlier ones lack: one without them is refused."""
 
 
 @dataclass
@@ -111,20 +124,23 @@ class Algorithm1:
             source_action_size=task_spec(str(job.source)).action_size,
             device=device,
         )
-        learner, source = SourceLearner(self.agent), str(job.source)
         self.pretraining = source_phase(
             "source pretraining", agent="the source agent", kind="coworld-source", config=self.config, logdir=job.logdir
         )
         self.source = make_source_trainer(
-            learner,
-            source,
+            self.agent.source,
+            str(job.source),
             config=self.config,
             logdir=job.logdir,
             writer=writer,
             logger=logger,
             phase=self.pretraining,
+            train=self.agent.train_source,
             checkpoint_extra=self.policy_value_state,
         )
+        """The source agent's online trainer: its replay B_S, its environments, its updates' schedule."""
+        self.target_batches: Iterator[dict[str, Any]] | None = None
+        """The running iteration's target batches from B_T (:meth:`begin_iteration`)."""
         self.state = Progress()
         self.checkpoint_path = Path(job.logdir) / CHECKPOINT_NAME
         self.bar: Any = progress_bar(total=0, desc="coworld", unit="updates", enabled=False)
@@ -177,46 +193,46 @@ class Algorithm1:
         source model's pass), made ahead on a background thread where ``train.prefetch`` is on."""
         cfg, train = self.cfg, self.config.train
         seed = self.config.seed + 1000 * (self.state.iteration + 1)
-        stop_prefetch(self.agent.target_batches)
+        stop_prefetch(self.target_batches)
         batches = self.dataset.sampler(train.batch_size, train.seq_len, seed=seed)
         if self.state.phase == "source":  # resumed inside the source phase: its batches follow the target phase's
             batches.skip(cfg.target_updates)
         made = TargetBatches(self.agent, aligned=cfg.target_updates if self.state.phase == "target" else 0, seed=seed)
-        self.agent.target_batches = Prefetcher(batches, made) if train.prefetch else map(made, batches)
+        self.target_batches = Prefetcher(batches, made) if train.prefetch else map(made, batches)
         self._show()
 
     def target_phase(self) -> None:
-        """K1 target updates on dataset batches (Eq. 3 and Eq. 6)."""
+        """Lines 5-12: K1 target updates, each on a batch from the target dataset (Eq. 3, imagination, Eq. 6)."""
         k1 = self.cfg.target_updates
         log_every = max(1, min(self.config.train.log_every, k1))
         rate = Rate(self.agent.target.updates)
         phase = self.target_phase_check()
-        for i in range(k1):
+        for k_t in range(k1):  # line 5
             interrupt.check()
-            metrics = self.agent.train_target(next(self.agent.target_batches))
+            target_batch = next(self.target_batches)  # line 6
+            metrics = self.agent.train_target(target_batch)  # lines 7-11
             phase.check(metrics, self.agent.target.updates)
             self.bar.update(1)
-            if (i + 1) % log_every == 0 or i + 1 == k1:
+            if (k_t + 1) % log_every == 0 or k_t + 1 == k1:
                 metrics["target/perf/updates_per_s"] = rate(self.agent.target.updates)
                 self.logger.log(metrics, self.agent.target.updates, unit="target_update")
 
     def source_phase(self) -> None:
-        """K2 source updates (Eqs. 4-5 on target batches), with source environment steps at the train ratio; the
-        running source episodes carry on into the next phase."""
-        goal = self.source.updates + self.cfg.source_updates
-        counted = self.source.updates
+        """Lines 14-22: K2 source updates, each on a source batch and (Eq. 4) a target batch, with the source
+        environment steps at the train ratio before each; the running source episodes carry on into the next phase.
+        """
+        relabel = self.cfg.reward_relabel
         # a rerun of a stopped source phase starts from the combined checkpoint written at the phase's start
         name = f"source phase of iteration {self.state.iteration + 1}"
         self.source.phase = dataclasses.replace(self.pretraining, name=name, resume_from=self.checkpoint_path)
-
-        def pause(trainer: Any) -> bool:
-            nonlocal counted
-            self.bar.update(trainer.updates - counted)
-            counted = trainer.updates
-            return trainer.updates >= goal
-
         self._show()
-        self.source.run(max_steps=UNBOUNDED, progress=False, should_pause=pause)
+        with self.source.acting():
+            for _ in range(self.cfg.source_updates):  # line 15
+                self.source.act()  # line 22, the steps that make this update due
+                source_batch = self.source.sample()  # line 16
+                target_batch = next(self.target_batches) if relabel else None  # Eq. 4's target batch
+                self.source.update(self.agent.train_source, source_batch, target_batch)  # lines 17-21
+                self.bar.update(1)
 
     def evaluate(self) -> None:
         """The target agent in the target environment (returns and the value check), and the open-loop strips."""
@@ -257,6 +273,7 @@ class Algorithm1:
             "source": self.agent.source.state_dict(),
             "source_updates": self.source.updates,
             "source_online": self.source.online_state(),
+            "relabelled": self.agent.relabelled,
             "progress": dataclasses.asdict(self.state),
             "rng": rng_state(),
             **self.policy_value_state(),
@@ -282,25 +299,20 @@ class Algorithm1:
         state = load_checkpoint(self.checkpoint_path, map_location=self.agent.device, keys=keys)
         if state.get("kind") != CHECKPOINT_KIND:
             raise CheckpointError(f"{self.checkpoint_path} is a {state.get('kind')!r} checkpoint, not a coworld one")
+        refuse_earlier_format(self.checkpoint_path, state, FORMAT_KEYS)
         self.agent.target.load_state_dict(state["agent"])
         self.agent.source.load_state_dict(state["source"])
         if self.agent.policy_value is not None:
             self.agent.policy_value.load_state_dict(state["policy_value"])
-        online = state.get("source_online")
-        if online is None:  # written before the checkpoint held the source's online state: from the data alone
-            online = {"updates": state["source_updates"], "last_eval": None, "last_eval_step": -1}
-            if "source_act_rng" in state:
-                online["act_rng"] = state["source_act_rng"]
         # the source's online state holds the metrics file's mark: resuming it cuts the file back to this checkpoint
-        self.source.resume(online, rollback="source_online" in state)
+        self.source.resume(state["source_online"], rollback=True)
+        self.agent.relabelled = int(state["relabelled"])
         self.state = Progress(**state["progress"])
-        # a checkpoint is written at a phase's start: the source phases before it made K2 relabelled updates each
-        self.agent.relabelled = self.state.iteration * self.cfg.source_updates
         set_rng_state(state["rng"])
 
     def close(self) -> None:
         self.source.close()
-        stop_prefetch(self.agent.target_batches)
+        stop_prefetch(self.target_batches)
 
     def _show(self) -> None:
         """The progress bar's postfix: iteration, phase and the last evaluation return."""

@@ -10,7 +10,7 @@ dataset.
 Resumes: a checkpoint holds, beside the agent and the random states, the trainer's counters, the replay sampler's
 state and the running episodes, as each environment's episode seed and its actions so far (an episode is a function
 of the two, :class:`coworld.envs.base.PixelEnv`). Where the dataset holds exactly the episodes the checkpoint had
-seen, the next :meth:`OnlineTrainer.run` makes the running episodes again by replaying those actions and goes on as
+seen, the next :meth:`OnlineTrainer.acting` makes the running episodes again by replaying those actions and goes on as
 the uninterrupted run did: the same steps, batches and weights. Collection and a two-phase run's source agent cut
 their dataset back to the checkpoint (``restore(rollback=True)``) to resume this way, and their log with it (emptied
 where no checkpoint was written). Without the cut, where the dataset recorded episodes after its checkpoint, the step
@@ -26,6 +26,13 @@ Train ratio: after ``train.prefill`` random steps the agent makes ``train.pretra
 (DreamerV2's ``pretrain``), then one update every ``train.train_every`` environment steps
 (:meth:`OnlineTrainer.updates_due`). A run resumed from a dataset that went on past its checkpoint keeps
 that ratio from its restored state on rather than catching up the updates lost with the killed process.
+
+Two loops drive the same pieces inside :meth:`OnlineTrainer.acting`. :meth:`OnlineTrainer.run` (collection, a source
+agent's pretraining) counts environment steps: :meth:`~OnlineTrainer.step`, the updates due by then
+(:meth:`~OnlineTrainer.sample` and :meth:`~OnlineTrainer.update`), :meth:`~OnlineTrainer.settle` (log, evaluation,
+checkpoint). CoWorld's source phases count updates (:mod:`coworld.training.coworld`): :meth:`~OnlineTrainer.act`
+takes the steps until the next update falls due, settling each, then the phase samples and updates. Both give each
+step, update and checkpoint the same place in the run.
 
 By default each update is made as soon as it falls due, before the next step, and acting draws its random numbers
 from torch's default generator, as the updates do. ``train.background_updates=true`` acts beside learning
@@ -44,8 +51,9 @@ from __future__ import annotations
 
 import threading
 import warnings
-from collections.abc import Callable, Mapping
-from dataclasses import dataclass
+from collections.abc import Callable, Iterator, Mapping
+from contextlib import contextmanager
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -56,7 +64,14 @@ from coworld import envs, interrupt
 from coworld.config import Config
 from coworld.data import DatasetWriter, open_dataset
 from coworld.progress import progress_bar
-from coworld.training.checkpoint import CHECKPOINT_NAME, read_run_checkpoint, restore_agent, run_state, save_checkpoint
+from coworld.training.checkpoint import (
+    CHECKPOINT_NAME,
+    read_run_checkpoint,
+    refuse_earlier_format,
+    restore_agent,
+    run_state,
+    save_checkpoint,
+)
 from coworld.training.divergence import Phase
 from coworld.training.evaluate import evaluate
 from coworld.training.logger import EMPTY_MARK, METRICS_MARK, Logger, Rate
@@ -66,10 +81,28 @@ from coworld.training.replay import Replay
 CHECKPOINT_KIND = "dreamerv2-online"
 CHECKPOINT_KEYS = ("agent", "updates", "last_eval", "last_eval_step", "rng")
 """What an online run's checkpoint holds beyond its kind, at least (:meth:`OnlineTrainer.save`)."""
+ONLINE_STATE_KEYS = ("steps", "episodes", "skipped_updates", "last_checkpoint_step", "act_rng", "replay_rng")
+"""The trainer's own entries of a checkpoint (:meth:`OnlineTrainer.online_state`) that :meth:`OnlineTrainer.resume`
+reads beside ``CHECKPOINT_KEYS``' counters; one without them was written before this release's format."""
 ACT_SEED_OFFSET = 30_000
 """Acting's generator is seeded with ``seed + ACT_SEED_OFFSET`` (evaluation uses ``seed + 10_000``)."""
 STOP_WAIT_SECONDS = 5.0
 """How long a call stopped by an error or a signal waits for the update running in the background to end."""
+
+
+@dataclass
+class Window:
+    """What one :meth:`OnlineTrainer.acting` call keeps from step to step: its progress bar, the rates and metrics
+    of the log window, and whether the last step is still to be settled (:meth:`OnlineTrainer.settle`) and ended an
+    episode."""
+
+    bar: Any
+    update_rate: Rate
+    step_rate: Rate
+    last_log: int
+    metrics: dict[str, float] = field(default_factory=dict)
+    unsettled: bool = False
+    ended: bool = False
 
 
 @dataclass
@@ -82,15 +115,14 @@ class OnlineResult:
 
 
 class Updates:
-    """The online trainer's updates, one at a time: :meth:`start` hands over a batch, :meth:`wait` returns the
-    update's metrics. ``in_thread``: the update runs on a thread of its own from :meth:`start` on; else :meth:`wait`
-    runs it in the caller's thread. Either way an update starts and ends between the same two calls, so both run
-    the same schedule."""
+    """The online trainer's updates, one at a time: :meth:`start` hands over an update and its arguments,
+    :meth:`wait` returns its metrics. ``in_thread``: the update runs on a thread of its own from :meth:`start` on;
+    else :meth:`wait` runs it in the caller's thread. Either way an update starts and ends between the same two calls,
+    so both run the same schedule."""
 
-    def __init__(self, train: Callable[[Mapping[str, np.ndarray]], dict[str, float]], in_thread: bool) -> None:
-        self._train = train
+    def __init__(self, in_thread: bool) -> None:
         self.in_thread = in_thread
-        self._batch: Mapping[str, np.ndarray] | None = None
+        self._update: tuple[Callable[..., dict[str, float]], tuple[Any, ...]] | None = None
         self._thread: threading.Thread | None = None
         self._result: dict[str, float] | None = None
         self._error: BaseException | None = None
@@ -98,16 +130,17 @@ class Updates:
     @property
     def pending(self) -> bool:
         """An update was started and not yet waited for."""
-        return self._batch is not None or self._thread is not None
+        return self._update is not None or self._thread is not None
 
-    def start(self, batch: Mapping[str, np.ndarray]) -> None:
+    def start(self, train: Callable[..., dict[str, float]], *args: Any) -> None:
+        """Start ``train(*args)``."""
         if self.pending:
             raise RuntimeError("an update is still pending: wait() for it before starting the next")
         if self.in_thread:
-            self._thread = threading.Thread(target=self._run, args=(batch,), name="coworld-update", daemon=True)
+            self._thread = threading.Thread(target=self._run, args=(train, args), name="coworld-update", daemon=True)
             self._thread.start()
         else:
-            self._batch = batch
+            self._update = (train, args)
 
     def wait(self, timeout: float | None = None) -> dict[str, float] | None:
         """The pending update's metrics, once it has ended (None if none was pending); raises what it raised.
@@ -117,9 +150,9 @@ class Updates:
             if self._thread.is_alive():
                 return None
             self._thread = None
-        elif self._batch is not None:
-            batch, self._batch = self._batch, None
-            self._run(batch)
+        elif self._update is not None:
+            (train, args), self._update = self._update, None
+            self._run(train, args)
         result, error = self._result, self._error
         self._result = self._error = None
         if error is not None:
@@ -130,11 +163,11 @@ class Updates:
         """Drop the pending update (the job is stopping): a background one gets ``timeout`` seconds to end."""
         if self._thread is not None:
             self._thread.join(timeout)
-        self._thread = self._batch = self._result = self._error = None
+        self._thread = self._update = self._result = self._error = None
 
-    def _run(self, batch: Mapping[str, np.ndarray]) -> None:
+    def _run(self, train: Callable[..., dict[str, float]], args: tuple[Any, ...]) -> None:
         try:
-            self._result = self._train(batch)
+            self._result = train(*args)
         except BaseException as error:  # handed to the thread that waits
             self._error = error
 
@@ -169,6 +202,8 @@ class OnlineTrainer:
 
     Args:
         agent: a DreamerV2 agent (``policy``, ``train``, ``state_dict``, ``load_state_dict``).
+        train: the update, ``train(batch) -> metrics`` (named without this trainer's ``metric_prefix``); None: the
+            agent's ``train`` (CoWorld's source agent: :meth:`coworld.agents.coworld.CoWorld.train_source`).
         task: registry name of the environment.
         config: resolved config (``train`` section drives the schedule).
         logdir: run folder for the checkpoint and logs.
@@ -189,12 +224,14 @@ class OnlineTrainer:
         logdir: str | Path,
         writer: DatasetWriter,
         logger: Logger,
+        train: Callable[..., dict[str, float]] | None = None,
         checkpoint_extra: Callable[[], dict[str, Any]] | None = None,
         metric_prefix: str = "",
         step_unit_prefix: str = "",
         phase: Phase | None = None,
     ) -> None:
         self.agent, self.task, self.config = agent, task, config
+        self.train = agent.train if train is None else train
         self.logdir = Path(logdir)
         self.writer, self.logger = writer, logger
         self.checkpoint_extra = checkpoint_extra
@@ -230,15 +267,17 @@ class OnlineTrainer:
         self._cut = False
         """The running episodes were cut at ``max_steps`` (a collection's last step): they cannot go on."""
         self._acting: dict[str, Any] | None = None
-        """A checkpoint's running episodes, which the next :meth:`run` makes again (see the module docstring)."""
+        """A checkpoint's running episodes, which the next :meth:`acting` makes again (see the module docstring)."""
         self._last_checkpoint_step = self.steps
         self.background = config.train.background_updates
         """Acting beside learning (see the module docstring)."""
-        self._updates = Updates(agent.train, in_thread=self.background)
+        self._updates = Updates(in_thread=self.background)
         self._unlogged: dict[str, float] = {}
         """Metrics of the last update that ended (whoever waited for it), for the run loop's next log."""
         self._actor: Any = None
         """What acts: the agent itself, or its policy copy when updates run beside acting."""
+        self._window: Window | None = None
+        """The open :meth:`acting` call's progress bar, rates and log window, and its last step."""
         self.act_rng = torch.Generator(device=getattr(agent, "device", "cpu")).manual_seed(
             config.seed + ACT_SEED_OFFSET
         )
@@ -260,6 +299,7 @@ class OnlineTrainer:
         state = None
         if self.checkpoint_path.exists():
             state = read_run_checkpoint(self.checkpoint_path, self.agent, CHECKPOINT_KIND, CHECKPOINT_KEYS)
+            refuse_earlier_format(self.checkpoint_path, state, ONLINE_STATE_KEYS)
             restore_agent(self.agent, state, self.checkpoint_path, "an online dreamerv2 agent of this config")
         self.resume(state, rollback=rollback)
         return state
@@ -268,10 +308,10 @@ class OnlineTrainer:
         """Continue from ``state`` (a checkpoint's :meth:`online_state` entries; None: from the data alone), the
         agent's weights and the random state being restored by the caller: the replay reloaded from the dataset, cut
         back first to the episodes ``state`` had seen where ``rollback``; its counters and random states; and, where
-        the dataset then holds exactly those episodes, its running episodes, which the next :meth:`run` makes again.
+        the dataset then holds exactly those episodes, its running episodes, which the next :meth:`acting` makes again.
         """
         if rollback:
-            seen = 0 if state is None else state.get("episodes", self.writer.num_episodes)
+            seen = 0 if state is None else state["episodes"]
             self.writer.keep_episodes(min(int(seen), self.writer.num_episodes))
         for episode in dataset_episodes(self.writer.path) if self.writer.num_episodes else []:
             self.replay.add_episode(episode)
@@ -283,10 +323,9 @@ class OnlineTrainer:
         self.updates = int(state["updates"])
         self.last_eval = state["last_eval"]
         self.last_eval_step = int(state["last_eval_step"])
-        if state.get("episodes") == self.writer.num_episodes:  # the steps after the checkpoint are taken (and logged)
+        if state["episodes"] == self.writer.num_episodes:  # the steps after the checkpoint are taken (and logged)
             self.logger.rewind(state.get(METRICS_MARK))  # again; a collection that recorded more goes on after them
-        if "act_rng" in state:  # checkpoints from before acting had its own generator start it afresh
-            self.act_rng.set_state(state["act_rng"].cpu())  # loaded onto the agent's device; generators take CPU states
+        self.act_rng.set_state(state["act_rng"].cpu())  # loaded onto the agent's device; generators take CPU states
         if "acting" in state and state["episodes"] == self.writer.num_episodes:
             self.steps = int(state["steps"])
             self._skipped_updates = int(state["skipped_updates"])
@@ -338,33 +377,173 @@ class OnlineTrainer:
 
     # -- the loop --------------------------------------------------------------------------------------------------
     def run(
-        self,
-        *,
-        max_steps: int,
-        stop_return: float | None = None,
-        progress: bool = True,
-        should_pause: Callable[[OnlineTrainer], bool] | None = None,
-        cut_episodes: bool = True,
+        self, *, max_steps: int, stop_return: float | None = None, progress: bool = True, cut_episodes: bool = True
     ) -> OnlineResult:
-        """Step, record and train until ``max_steps`` steps are taken or evaluation reaches ``stop_return``.
+        """Step, record and train until ``max_steps`` steps are taken or evaluation reaches ``stop_return``: after
+        each step the updates due by then (:meth:`updates_due`), then its log, evaluation and checkpoint.
 
         ``cut_episodes`` (collection): stop at exactly ``max_steps`` rows, ending the running episodes there as
         time limits. Without it (CoWorld's source pretraining) the call stops once ``max_steps`` is reached (at
         most ``envs - 1`` steps later) and the running episodes continue in the next call, so the phase boundary
-        leaves no mark in the data. ``should_pause`` is asked after every step; returning True ends this call
-        without closing the environments, and the next call continues the running episodes (CoWorld interleaves
-        its source and target phases this way).
+        leaves no mark in the data.
         """
+        reason = "max steps"
+        with self.acting(total=max_steps, progress=progress):
+            if stop_return is not None and self.last_eval is not None and self.last_eval >= stop_return:
+                max_steps = self.steps  # a resumed run that had already reached its goal does not go on
+                reason = f"evaluation return {self.last_eval:.1f} reached {stop_return:.1f}"
+            while self.steps < max_steps:
+                self.step(max_steps if cut_episodes else None)
+                self._train_due()
+                if self.settle(stop_return):
+                    reason = f"evaluation return {self.last_eval:.1f} reached {stop_return:.1f}"
+                    break
+        self.save()
+        return OnlineResult(self.steps, self.updates, self.writer.num_episodes, self.last_eval, reason)
+
+    @contextmanager
+    def acting(self, *, total: int = 0, progress: bool = False) -> Iterator[None]:
+        """Where :meth:`step`, :meth:`act`, :meth:`sample` and :meth:`update` are called: the environments made (or
+        the running episodes a checkpoint held made again) on entry; on exit the last step settled, the running
+        update waited for and the log window's metrics written (a stop by an error or a signal gives the running
+        update a few seconds to end). The environments stay open, so the next call continues the running
+        episodes (CoWorld's source phases). ``total``: the progress bar's length in environment steps."""
+        self._start_acting()
+        bar = progress_bar(
+            total=total, initial=min(self.steps, total), desc=self.task, unit="env steps", enabled=progress
+        )
+        self._window = window = Window(bar, Rate(self.updates), Rate(self.steps), last_log=self.steps)
+        try:
+            yield
+            self.settle()
+            self._finish_update()
+            window.metrics.update(self._take_unlogged())
+        finally:
+            bar.close()
+            self._window = None
+            if self._updates.pending:  # stopped by an error or a signal: let the running update end, briefly
+                self._updates.abandon(STOP_WAIT_SECONDS)
+        if window.metrics:  # what the last log_every window had not written yet
+            self.logger.log(window.metrics, self.steps, unit=self.step_unit)
+
+    def act(self) -> None:
+        """Step the environments until an update falls due (no step where one is due already): the source agent's
+        interaction between two of CoWorld's source updates, at the train ratio (:meth:`updates_due`). Each step
+        is settled (:meth:`settle`) once the updates due after it are made."""
+        while not self.update_due():
+            self.settle()
+            self.step()
+
+    def update_due(self) -> bool:
+        """An update is due: fewer have been made than :meth:`updates_due` says by now (the missed ones skipped),
+        and the replay holds a finished episode to sample from."""
+        if self.steps < self.config.train.prefill or not self.replay.episodes:
+            return False
+        return self.updates < self.updates_due(self.steps) - self._skipped_updates
+
+    def sample(self) -> Mapping[str, np.ndarray]:
+        """A batch ``(B, T, ...)`` of the replay as it is now, once the update before has ended."""
+        self._finish_update()
         cfg = self.config.train
+        return self.replay.sample(cfg.batch_size, cfg.seq_len)
+
+    def update(self, train: Callable[..., dict[str, float]], *args: Any) -> None:
+        """Make one update, ``train(*args)``; beside learning it is left running while the agent acts, and the next
+        :meth:`sample` (or evaluation, checkpoint, end of :meth:`acting`) waits for it."""
+        self._updates.start(train, *args)
+        self.updates += 1
+        if not self.background:
+            self._finish_update()
+
+    def step(self, max_steps: int | None = None) -> None:
+        """One step of every environment with the acting policy, each recorded in the replay and, once its episode
+        ends, in the dataset. ``max_steps``: the run ends at exactly that many rows, the running episodes ending
+        there (stored as time limits); None: every environment's step is kept and the episodes run on."""
+        cfg, n = self.config.train, self.config.train.envs
+        window = self._open_window()
+        interrupt.check()
+        mode = "random" if self.steps < cfg.prefill else "train"
+        # The agent adds its own exploration noise (train.expl_noise), so the action the latent conditions on is
+        # the one executed; during the prefill it still filters the latent, so the first trained action continues
+        # the running episode's state rather than restarting it mid-episode.
+        action, self._state = self._actor.policy(
+            self._obs,
+            self._state,
+            mode=mode,
+            is_first=self._is_first,
+            generator=self.act_rng if self.background else None,
+        )
+        action = action.astype(np.float32)
+        self.phase.check_actions(action, self.steps + 1, self.step_unit.replace("_", " "))
+        obs, reward, terminated, truncated, info = self._venv.step(action)
+        keep = n if max_steps is None else min(n, max_steps - self.steps)
+        final = max_steps is not None and self.steps + keep >= max_steps
+        self._cut |= final
+        ended = False
+        for i in range(n):
+            if self._is_last[i]:  # NEXT_STEP autoreset: this step only reset env i; obs[i] is o_0
+                self._record(i, obs[i], np.zeros_like(action[i]), 0.0, True, False, False)
+                self._is_first[i] = True  # the next action starts a new latent from o_0, and only there
+                continue
+            self._is_first[i] = False
+            if i >= keep:
+                continue
+            success = float(info["success"][i]) if "success" in info else None
+            last = bool(terminated[i] or truncated[i]) or final
+            ended |= self._record(i, obs[i], action[i], float(reward[i]), False, last, bool(terminated[i]), success)
+            self.steps += 1
+            window.bar.update(1)
+        self._obs = obs
+        window.unsettled, window.ended = True, ended
+
+    def settle(self, stop_return: float | None = None) -> bool:
+        """What follows the last step once the updates due after it are made (nothing if it is settled): the log
+        window's record when ``train.log_every`` steps have passed, and, where the step ended an episode, an
+        evaluation when ``train.eval_every`` steps have passed and a checkpoint when ``train.checkpoint_every``
+        have. Returns True when that evaluation reached ``stop_return`` (the checkpoint then left to the caller)."""
+        cfg, window = self.config.train, self._open_window()
+        if not window.unsettled:
+            return False
+        window.unsettled = False
+        window.metrics.update(self._take_unlogged())
+        if self.steps - window.last_log >= cfg.log_every and window.metrics:
+            # Rates over this log window, evaluation and checkpoint time included.
+            window.metrics[f"{self.prefix}perf/updates_per_s"] = window.update_rate(self.updates)
+            window.metrics[f"{self.prefix}perf/steps_per_s"] = window.step_rate(self.steps)
+            window.bar.set_postfix(self._bar_info(window.metrics[f"{self.prefix}perf/updates_per_s"]))
+            self.logger.log(window.metrics, self.steps, unit=self.step_unit)
+            window.metrics, window.last_log = {}, self.steps
+        if not window.ended:
+            return False
+        if self.steps >= cfg.prefill and self.steps - self.last_eval_step >= cfg.eval_every:
+            self._evaluate()
+            window.bar.set_postfix(self._bar_info())
+            if stop_return is not None and self.last_eval >= stop_return:
+                return True
+        if self.steps - self._last_checkpoint_step >= cfg.checkpoint_every:
+            self._last_checkpoint_step = self.steps
+            self.save()
+        return False
+
+    def close(self) -> None:
+        if self._venv is not None:
+            self._venv.close()
+            self._venv = None
+
+    # -- pieces ----------------------------------------------------------------------------------------------------
+    def _start_acting(self) -> None:
+        """The environments and the acting policy as :meth:`acting` needs them: made on the first call (with a
+        checkpoint's running episodes made again, or new ones started), the missed updates of a resume skipped, the
+        policy copy given the agent's weights (which may have been loaded since the last call)."""
+        n = self.config.train.envs
         if self._venv is None:
             # beside learning, the environments step in worker processes: this process's other thread is learning
             workers = True if self.background else None
-            self._venv = envs.make_vector(self.task, cfg.envs, seed=self.config.seed + self.steps, workers=workers)
+            self._venv = envs.make_vector(self.task, n, seed=self.config.seed + self.steps, workers=workers)
             self._obs = None
             if self._acting is not None:
                 self._replay_episodes(self._acting)
             self._acting = None
-        n = cfg.envs
         if self._obs is None:
             self._obs, _ = self._venv.reset(seed=[self.config.seed + self.steps + i for i in range(n)])
             self._state = None
@@ -376,96 +555,13 @@ class OnlineTrainer:
         if self._actor is None:
             self._actor = self.agent.policy_copy() if self.background else self.agent
         elif self._actor is not self.agent:
-            self._actor.sync()  # the agent's weights may have been loaded since the last call
-        bar = progress_bar(
-            total=max_steps, initial=min(self.steps, max_steps), desc=self.task, unit="env steps", enabled=progress
-        )
-        reason = "max steps"
-        if stop_return is not None and self.last_eval is not None and self.last_eval >= stop_return:
-            max_steps = self.steps  # a resumed run that had already reached its goal does not go on
-            reason = f"evaluation return {self.last_eval:.1f} reached {stop_return:.1f}"
-        update_rate, step_rate = Rate(self.updates), Rate(self.steps)
-        metrics: dict[str, float] = {}
-        last_log = self.steps
-        try:
-            while self.steps < max_steps:
-                interrupt.check()
-                mode = "random" if self.steps < cfg.prefill else "train"
-                # The agent adds its own exploration noise (train.expl_noise), so the action the latent conditions
-                # on is the one executed; during the prefill it still filters the latent, so the first trained
-                # action continues the running episode's state rather than restarting it mid-episode.
-                action, self._state = self._actor.policy(
-                    self._obs,
-                    self._state,
-                    mode=mode,
-                    is_first=self._is_first,
-                    generator=self.act_rng if self.background else None,
-                )
-                action = action.astype(np.float32)
-                self.phase.check_actions(action, self.steps + 1, self.step_unit.replace("_", " "))
-                obs, reward, terminated, truncated, info = self._venv.step(action)
-                # With cut_episodes, the run ends at exactly max_steps rows and the running episodes end there
-                # (stored as time limits); without it, every env's step is kept and the episodes run on.
-                keep = min(n, max_steps - self.steps) if cut_episodes else n
-                final = cut_episodes and self.steps + keep >= max_steps
-                self._cut |= final
-                ended = False
-                for i in range(n):
-                    if self._is_last[i]:  # NEXT_STEP autoreset: this step only reset env i; obs[i] is o_0
-                        self._record(i, obs[i], np.zeros_like(action[i]), 0.0, True, False, False)
-                        self._is_first[i] = True  # the next action starts a new latent from o_0, and only there
-                        continue
-                    self._is_first[i] = False
-                    if i >= keep:
-                        continue
-                    success = float(info["success"][i]) if "success" in info else None
-                    last = bool(terminated[i] or truncated[i]) or final
-                    ended |= self._record(
-                        i, obs[i], action[i], float(reward[i]), False, last, bool(terminated[i]), success
-                    )
-                    self.steps += 1
-                    bar.update(1)
-                self._obs = obs
-                self._train_due()
-                metrics.update(self._take_unlogged())
-                if self.steps - last_log >= cfg.log_every and metrics:
-                    # Rates over this log window, evaluation and checkpoint time included.
-                    metrics[f"{self.prefix}perf/updates_per_s"] = update_rate(self.updates)
-                    metrics[f"{self.prefix}perf/steps_per_s"] = step_rate(self.steps)
-                    bar.set_postfix(self._bar_info(metrics[f"{self.prefix}perf/updates_per_s"]))
-                    self.logger.log(metrics, self.steps, unit=self.step_unit)
-                    metrics, last_log = {}, self.steps
-                if ended:
-                    if self.steps >= cfg.prefill and self.steps - self.last_eval_step >= cfg.eval_every:
-                        self._evaluate()
-                        bar.set_postfix(self._bar_info())
-                        if stop_return is not None and self.last_eval >= stop_return:
-                            reason = f"evaluation return {self.last_eval:.1f} reached {stop_return:.1f}"
-                            break
-                    if self.steps - self._last_checkpoint_step >= cfg.checkpoint_every:
-                        self._last_checkpoint_step = self.steps
-                        self.save()
-                if should_pause is not None and should_pause(self):
-                    reason = "paused"
-                    break
-            self._finish_update()
-            metrics.update(self._take_unlogged())
-        finally:
-            bar.close()
-            if self._updates.pending:  # stopped by an error or a signal: let the running update end, briefly
-                self._updates.abandon(STOP_WAIT_SECONDS)
-        if metrics:  # what the last log_every window had not written yet
-            self.logger.log(metrics, self.steps, unit=self.step_unit)
-        if reason != "paused":
-            self.save()
-        return OnlineResult(self.steps, self.updates, self.writer.num_episodes, self.last_eval, reason)
+            self._actor.sync()
 
-    def close(self) -> None:
-        if self._venv is not None:
-            self._venv.close()
-            self._venv = None
+    def _open_window(self) -> Window:
+        if self._window is None:
+            raise RuntimeError("step, act and settle run inside `with trainer.acting():`")
+        return self._window
 
-    # -- pieces ----------------------------------------------------------------------------------------------------
     def _record(
         self,
         i: int,
@@ -577,15 +673,8 @@ class OnlineTrainer:
     def _train_due(self) -> None:
         """Make the updates due by now, each on a batch of the replay as it is now, after the one before ends.
         Beside learning the last one is left running."""
-        cfg = self.config.train
-        if self.steps < cfg.prefill or not self.replay.episodes:
-            return
-        while self.updates < self.updates_due(self.steps) - self._skipped_updates:
-            self._finish_update()
-            self._updates.start(self.replay.sample(cfg.batch_size, cfg.seq_len))
-            self.updates += 1
-            if not self.background:
-                self._finish_update()
+        while self.update_due():
+            self.update(self.train, self.sample())
 
     def _finish_update(self) -> None:
         """Wait for the running update, if any; the policy copy then takes its weights, and its metrics wait in
@@ -650,11 +739,12 @@ def make_source_trainer(
     writer: DatasetWriter,
     logger: Logger,
     phase: Phase,
+    train: Callable[..., dict[str, float]] | None = None,
     checkpoint_extra: Callable[[], dict[str, Any]] | None = None,
 ) -> OnlineTrainer:
-    """The online trainer of a two-phase run's source agent (CoWorld's, a fine-tuned DreamerV2's): its checkpoint
-    in ``<logdir>/source`` (with ``checkpoint_extra()``'s entries), its metrics and step unit marked ``source``,
-    checked as ``phase`` (:func:`source_phase`)."""
+    """The online trainer of a two-phase run's source agent (CoWorld's, a fine-tuned DreamerV2's), updated by
+    ``train`` (None: the agent's own): its checkpoint in ``<logdir>/source`` (with ``checkpoint_extra()``'s
+    entries), its metrics and step unit marked ``source``, checked as ``phase`` (:func:`source_phase`)."""
     return OnlineTrainer(
         agent=agent,
         task=source,
@@ -662,6 +752,7 @@ def make_source_trainer(
         logdir=Path(logdir) / "source",
         writer=writer,
         logger=logger,
+        train=train,
         checkpoint_extra=checkpoint_extra,
         metric_prefix="source/",
         step_unit_prefix="source_",
@@ -686,17 +777,19 @@ def pretrain_source(
     logger: Logger,
     algorithm: str,
     phase: Phase,
+    train: Callable[..., dict[str, float]] | None = None,
     progress: bool = True,
     cut_episodes: bool = True,
 ) -> int:
     """A two-phase run's source agent (a fine-tuned DreamerV2, a candidate source of CoWorld's choice) trained online
     in ``source`` until ``coworld.pretrain_steps`` steps, recorded in ``<logdir>/source_replay.h5``; a stopped
     pretraining resumes from its last checkpoint with its replay cut back to it (:meth:`OnlineTrainer.restore`).
-    ``phase``: what its checks call it (:func:`source_phase`). Returns the source environment steps taken."""
+    ``phase``: what its checks call it (:func:`source_phase`); ``train``: its update (None: the agent's own). Returns
+    the source environment steps taken."""
     writer = source_replay_writer(logdir, source, algorithm=algorithm, seed=config.seed)
     with writer:
         trainer = make_source_trainer(
-            agent, source, config=config, logdir=logdir, writer=writer, logger=logger, phase=phase
+            agent, source, config=config, logdir=logdir, writer=writer, logger=logger, phase=phase, train=train
         )
         try:
             trainer.restore(rollback=True)

@@ -172,14 +172,12 @@ SamplerFactory = Callable[[int], Iterator[Mapping[str, np.ndarray]]]
 
 
 def world_models_of(agent: Any) -> dict[str, Any]:
-    """The world models an agent trains, by name: a DreamerV2 -> ``{"model"}``, a CoWorld -> ``{"target",
-    "source"}``, CoWorld's source learner (what its online trainer drives) -> ``{"source"}``; others -> ``{}``."""
+    """The world models an agent trains, by name: a DreamerV2 (CoWorld's source agent among them) -> ``{"model"}``,
+    a CoWorld -> ``{"target", "source"}``; others -> ``{}``."""
     if hasattr(agent, "world_model"):
         return {"model": agent.world_model}
     if hasattr(agent, "target") and hasattr(agent, "source"):
         return {"target": agent.target.world_model, "source": agent.source.world_model}
-    if hasattr(agent, "coworld"):
-        return {"source": agent.coworld.source.world_model}
     return {}
 
 

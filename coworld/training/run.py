@@ -201,7 +201,7 @@ def load_run(logdir: str | Path, fix: str = "") -> tuple[Config, dict[str, Any]]
         config = from_dict(config_data)
     except ConfigError as err:
         raise CoworldError(damaged(logdir / "config.json", f"a config that does not build: {err}", fix)) from None
-    info = run_description(read_json_object(logdir / "run.json", fix))
+    info = run_description(read_json_object(logdir / "run.json", fix), logdir / "run.json")
     if not isinstance(info.get("algo"), str):
         raise CoworldError(damaged(logdir / "run.json", "no algo: it does not say what was trained", fix))
     return config, info

@@ -155,15 +155,21 @@ def needed_steps(algo: str, config: Config) -> tuple[int, str] | None:
 def check_resumable(run_dir: Path, config: Config, info: dict[str, Any]) -> None:
     """The checkpoints a resumed run will load are whole and of this run (one line otherwise), checked before the
     run folder is touched; the main checkpoint, else a source agent's pretraining checkpoint."""
+    from coworld.training.checkpoint import refuse_earlier_format
     from coworld.training.coworld import CHECKPOINT_KEYS as COWORLD_CHECKPOINT_KEYS
+    from coworld.training.coworld import FORMAT_KEYS
     from coworld.training.loading import load_run_checkpoint
     from coworld.training.offline import CHECKPOINT_KEYS
     from coworld.training.online import CHECKPOINT_KEYS as ONLINE_KEYS
+    from coworld.training.online import ONLINE_STATE_KEYS
 
     main, source = run_dir / "checkpoint.pt", run_dir / "source" / "checkpoint.pt"
     if main.exists():
-        keys = COWORLD_CHECKPOINT_KEYS if algorithm(info["algo"]).collaborative else CHECKPOINT_KEYS
-        load_run_checkpoint(main, config, info, keys=keys, mmap=True)
+        collaborative = algorithm(info["algo"]).collaborative
+        keys = COWORLD_CHECKPOINT_KEYS if collaborative else CHECKPOINT_KEYS
+        state = load_run_checkpoint(main, config, info, keys=keys, mmap=True)
+        if collaborative:  # refused here, before the run folder is touched, not once the run has opened it
+            refuse_earlier_format(main, state, FORMAT_KEYS)
         return
     sources = parse_sources(info["source"]) if info.get("source") else ()
     if len(sources) > 1:  # CoWorld choosing its source: each candidate's pretraining, the chosen one's once moved
@@ -178,7 +184,8 @@ def check_resumable(run_dir: Path, config: Config, info: dict[str, Any]) -> None
     for path, task in checks:
         if path.exists():  # the source agent learned in the source task
             source_info = {**info, "online": True, "target": task, "source": None}
-            load_run_checkpoint(path, config, source_info, keys=ONLINE_KEYS, mmap=True)
+            state = load_run_checkpoint(path, config, source_info, keys=ONLINE_KEYS, mmap=True)
+            refuse_earlier_format(path, state, ONLINE_STATE_KEYS)
 
 
 def check_schedule(algo: str, config: Config) -> None:

@@ -71,11 +71,11 @@ def test_a_run_across_action_sizes_trains_resumes_and_evaluates(
     original = CoWorld.train_source
     calls = {"n": 0}
 
-    def crashing(self, batch):
+    def crashing(self, *args):
         calls["n"] += 1
         if calls["n"] > 13 + 10:  # 13 pretraining updates, then 10 into the first source phase
             raise RuntimeError("simulated crash")
-        return original(self, batch)
+        return original(self, *args)
 
     monkeypatch.setattr(CoWorld, "train_source", crashing)
     with pytest.raises(RuntimeError, match="simulated crash"):

@@ -59,9 +59,8 @@ def test_the_target_policy_critic_is_the_cap_and_learns_the_target_actors_value_
     agent = _agent("coworld.align=false", "coworld.cap_critic=target_policy", "train.actor_warmup=0")
     assert agent.policy_value is not None and agent.cap_critic is agent.policy_value.critic
     before = [p.detach().clone() for p in agent.policy_value.critic.parameters()]
-    agent.target_batches = iter([agent.target.prepare(target_batch(b=2, t=4))])
-    metrics = agent.train_source(target_batch(b=2, t=4))
-    assert "source/policy_value/loss" in metrics
+    metrics = agent.train_source(target_batch(b=2, t=4), agent.target.prepare(target_batch(b=2, t=4)))
+    assert "policy_value/loss" in metrics
     assert any(not torch.equal(b, p) for b, p in zip(before, agent.policy_value.critic.parameters(), strict=True))
     calls = _capture_objective(agent)
     metrics = agent.train_target(target_batch(b=2, t=4))
@@ -80,9 +79,8 @@ def test_the_source_agent_trains_exactly_as_without_the_target_policy_critic(tar
     for step in range(3):
         batches = [target_batch(b=2, t=4) for _ in range(2)]
         for agent in (plain, capped):
-            agent.target_batches = iter([agent.target.prepare(batches[1])])
             torch.manual_seed(step)
-            agent.train_source(batches[0])
+            agent.train_source(batches[0], agent.target.prepare(batches[1]))
     for name in ("world_model", "actor_critic"):
         for a, b in zip(
             getattr(plain.source, name).state_dict().values(),
@@ -120,7 +118,6 @@ def test_eq5_with_eta_weighs_the_source_and_target_reward_terms_at_the_reward_sc
     agent.relabelled = 3  # 3 of the run's 8 source updates done: eta = 1 + (0.2 - 1) * 3 / 8 = 0.7
     source_batch, relabel_batch = target_batch(b=2, t=4), target_batch(b=2, t=4)
     prepared = agent.target.prepare(relabel_batch)
-    agent.target_batches = iter([prepared])
     seen: dict[str, Any] = {}
     original = agent.source.train_world_model
 
@@ -143,13 +140,13 @@ def test_eq5_with_eta_weighs_the_source_and_target_reward_terms_at_the_reward_sc
         return original(batch, recording)
 
     agent.source.train_world_model = spy
-    metrics = agent.train_source(source_batch)
+    metrics = agent.train_source(source_batch, prepared)
     eta, scale = 0.7, 2.0
-    assert metrics["source/coworld/eta"] == pytest.approx(eta)
+    assert metrics["coworld/eta"] == pytest.approx(eta)
     assert float(seen["terms"]["relabel"]) == pytest.approx((1 - eta) * scale * float(seen["target"]), rel=1e-4)
     assert float(seen["terms"]["eta_mix"]) == pytest.approx((eta - 1) * scale * float(seen["source"]), rel=1e-4)
     # with the world model's own scale * L_S, the loss holds eta * s * L_S + (1 - eta) * s * L_T
-    assert metrics["source/coworld/relabel_reward_loss"] == pytest.approx(float(seen["target"]), rel=1e-4)
+    assert metrics["coworld/relabel_reward_loss"] == pytest.approx(float(seen["target"]), rel=1e-4)
     assert agent.relabelled == 4
 
 

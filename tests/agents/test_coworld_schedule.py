@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 import torch
 
-from coworld.agents.coworld import ALIGN_SOURCE, CoWorld
-from coworld.agents.coworld_feeds import TargetBatches
+from coworld.agents.coworld import ALIGN_SOURCE, CoWorld, TargetBatches
 from coworld.config import make_config
 from coworld.data import open_dataset
+from coworld.errors import CheckpointError
 from coworld.losses.coworld import alignment_loss
 from coworld.training.online import OnlineTrainer
 from coworld.training.train import run_job
@@ -36,12 +36,12 @@ def test_a_run_killed_inside_a_source_phase_resumes_to_the_weights_of_an_uninter
     original_train_source = CoWorld.train_source
     calls = {"n": 0}
 
-    def crashing_train_source(self, batch):
+    def crashing_train_source(self, *args):
         calls["n"] += 1
         # pretraining makes 2 + (100 - 50) / 5 + 1 = 13 source updates; crash 10 updates into the first phase
         if calls["n"] > 13 + 10:
             raise RuntimeError("simulated crash")
-        return original_train_source(self, batch)
+        return original_train_source(self, *args)
 
     monkeypatch.setattr(CoWorld, "train_source", crashing_train_source)
     with pytest.raises(RuntimeError, match="simulated crash"):
@@ -53,18 +53,23 @@ def test_a_run_killed_inside_a_source_phase_resumes_to_the_weights_of_an_uninter
     assert rows_at_crash > 100  # the source phase had stepped the environment before the crash
 
     monkeypatch.setattr(CoWorld, "train_source", original_train_source)
-    updates_per_call: list[int] = []
-    original_due = OnlineTrainer._train_due
+    updates_per_step = [0]
+    original_step, original_update = OnlineTrainer.step, OnlineTrainer.update
 
-    def counting(self):
-        before = self.updates
-        original_due(self)
-        updates_per_call.append(self.updates - before)
+    def stepping(self, *args):
+        updates_per_step.append(0)
+        original_step(self, *args)
 
-    monkeypatch.setattr(OnlineTrainer, "_train_due", counting)
+    def updating(self, *args):
+        updates_per_step[-1] += 1
+        original_update(self, *args)
+
+    monkeypatch.setattr(OnlineTrainer, "step", stepping)
+    monkeypatch.setattr(OnlineTrainer, "update", updating)
     summary = run_job(job, progress=False)
     assert summary["iterations"] == 2
-    assert max(updates_per_call) == 1  # never two source updates without an environment step between them
+    assert sum(updates_per_step) == 15 + 15  # the rest of the first source phase from its start, and the second
+    assert max(updates_per_step) == 1  # never two source updates without an environment step between them
     final = torch.load(tmp_path / "run" / "checkpoint.pt", weights_only=True)
     assert final["source_updates"] == 13 + 2 * 15  # pretraining, then exactly K2 per iteration
     _assert_same_tensors(
@@ -250,3 +255,30 @@ def test_a_run_stopped_while_it_pretrains_ends_with_an_uninterrupted_runs_counts
     if cap_critic == "target_policy":
         assert int(resumed["policy_value"]["updates"]) == int(whole["policy_value"]["updates"]) > 0
         _assert_same_tensors(whole["policy_value"], resumed["policy_value"])
+
+
+@pytest.mark.parametrize("entry", ["relabelled", "source_online"])
+def test_a_checkpoint_from_before_this_release_is_refused_in_one_line(
+    entry: str, tmp_path: Path, toy_dataset_writer, coworld_toy_job
+) -> None:
+    """A CoWorld checkpoint without an entry this release writes (the source updates that relabelled a target batch,
+    the source agent's online state) is not resumed from what it does hold: one line says to train again or to
+    resume it with the coworld that wrote it, and the checkpoint is left as it was."""
+    dataset = toy_dataset_writer(tmp_path / "target.h5", "toy_reach_shifted", episodes=3)
+    schedule = ("coworld.pretrain_steps=60", "coworld.target_updates=1", "coworld.source_updates=1")
+    overrides = [o for o in PRETRAINING if o.split("=")[0] not in {s.split("=")[0] for s in schedule}] + list(schedule)
+    run_job(coworld_toy_job(dataset, tmp_path / "run", overrides), progress=False)
+    path = tmp_path / "run" / "checkpoint.pt"
+    state = torch.load(path, weights_only=True)
+    assert state["relabelled"] == 1  # the one source update of the one iteration relabelled its target batch
+    del state[entry]
+    torch.save(state, path)
+    written = path.read_bytes()
+    folder = {p.name: p.read_bytes() for p in (tmp_path / "run").iterdir() if p.is_file()}
+    with pytest.raises(CheckpointError) as refused:  # refused as the request is checked, before the folder is touched
+        run_job(coworld_toy_job(dataset, tmp_path / "run", overrides), progress=False)
+    assert {p.name: p.read_bytes() for p in (tmp_path / "run").iterdir() if p.is_file()} == folder
+    message = str(refused.value)
+    assert "\n" not in message and message.startswith(f"{path} was written by an earlier coworld (no {entry!r} entry)")
+    assert "train the run again (--force), or resume it with coworld 0.1.0 at commit" in message
+    assert path.read_bytes() == written

@@ -20,8 +20,7 @@ import torch
 from torch import Tensor
 
 from coworld.agents import coworld as coworld_module
-from coworld.agents.coworld import ALIGN_SOURCE, CoWorld
-from coworld.agents.coworld_feeds import SourceLearner, TargetBatches
+from coworld.agents.coworld import ALIGN_SOURCE, CoWorld, TargetBatches
 from coworld.agents.dreamerv2 import DreamerV2
 from coworld.config import make_config
 from coworld.data import open_dataset
@@ -155,7 +154,6 @@ def test_eq4_relabels_target_frames_through_the_source_model_with_k_on_its_predi
     source_batch, relabel_batch = target_batch(b=3, t=5), target_batch(b=3, t=5)
     relabel_batch["reward"] = relabel_batch["reward"] * 4.0 - 2.0  # far from the untrained head's ~0 predictions
     prepared = agent.target.prepare(relabel_batch)
-    agent.target_batches = iter([prepared])
     wm = agent.source.world_model
     head_params = list(wm.reward_head.parameters())
     seen: dict[str, Any] = {}
@@ -176,7 +174,7 @@ def test_eq4_relabels_target_frames_through_the_source_model_with_k_on_its_predi
     _spy_world_model_step(agent.source, captured, check)
     target_before = _snapshot(agent.target.world_model, agent.target.actor_critic)
     torch.manual_seed(5)
-    metrics = agent.train_source(source_batch)
+    metrics = agent.train_source(source_batch, prepared)
 
     assert _unchanged(target_before, agent.target.world_model, agent.target.actor_critic)
     assert float(seen["expected"]) > 0.1
@@ -185,33 +183,24 @@ def test_eq4_relabels_target_frames_through_the_source_model_with_k_on_its_predi
         torch.testing.assert_close(got, want, rtol=1e-4, atol=1e-7)
     b, t = relabel_batch["reward"].shape
     torch.testing.assert_close(seen["pred_grad"], (1.0 - K) * seen["pred_minus_reward"] / (b * t))
-    assert metrics["source/coworld/relabel_reward_loss"] == pytest.approx(float(seen["expected"]), rel=1e-5)
+    assert metrics["coworld/relabel_reward_loss"] == pytest.approx(float(seen["expected"]), rel=1e-5)
     # Eq. 5's first expectation stays in: the source batch's own loss (its reward term included) plus the second
-    assert metrics["source/wm/loss"] == pytest.approx(float(captured["aux_loss"]) + float(seen["expected"]), rel=1e-5)
-    assert metrics["source/wm/reward"] > 0.0
+    assert metrics["wm/loss"] == pytest.approx(float(captured["aux_loss"]) + float(seen["expected"]), rel=1e-5)
+    assert metrics["wm/reward"] > 0.0
 
 
-def test_eq4_takes_one_target_batch_per_source_update_and_none_when_off(target_batch) -> None:
-    """Each source update draws exactly one batch from ``target_batches``; with ``coworld.reward_relabel=false``
-    (or no target batches, as in the pretraining) the source step is plain DreamerV2 and adds no term."""
+def test_eq4_relabels_the_target_batch_it_is_given_and_none_when_off(target_batch) -> None:
+    """A source update relabels the target batch passed with its source batch, and counts it for Eq. 5's ``eta``;
+    with ``coworld.reward_relabel=false`` (or no target batch, as in the pretraining) the source step is plain
+    DreamerV2 and adds no term."""
     agent = _agent("coworld.value_reg=false", "coworld.align=false")
-    drawn: list[int] = []
-
-    def stream():
-        for i in range(3):
-            drawn.append(i)
-            yield agent.target.prepare(target_batch(b=2, t=3))
-
-    agent.target_batches = stream()
-    agent.train_source(target_batch(b=2, t=3))
-    agent.train_source(target_batch(b=2, t=3))
-    assert drawn == [0, 1]
+    given = agent.target.prepare(target_batch(b=2, t=3))
+    assert "coworld/relabel_reward_loss" in agent.train_source(target_batch(b=2, t=3), given)
+    assert "coworld/relabel_reward_loss" not in agent.train_source(target_batch(b=2, t=3))
+    assert agent.relabelled == 1 and agent.source.updates == 2
     off = _agent("coworld.reward_relabel=false")
-    off.target_batches = stream()
-    metrics = off.train_source(target_batch(b=2, t=3))
-    assert drawn == [0, 1] and "source/coworld/relabel_reward_loss" not in metrics
-    agent.target_batches = None
-    assert "source/coworld/relabel_reward_loss" not in agent.train_source(target_batch(b=2, t=3))
+    assert "coworld/relabel_reward_loss" not in off.train_source(target_batch(b=2, t=3), given)
+    assert off.relabelled == 0
 
 
 # -- Eq. 6 ------------------------------------------------------------------------------------------------------
@@ -278,17 +267,21 @@ def test_actor_warmup_holds_the_actor_and_critic_of_both_agents(target_batch) ->
     DreamerV2's ``train``: the actor, critic and slow critic stay as they were, and no actor-critic metric is
     logged; the update after them trains them (Eq. 6's term with them, on the target side)."""
     agent = _agent("train.actor_warmup=2")
-    agent.target_batches = iter([agent.target.prepare(target_batch(b=2, t=3)) for _ in range(3)])
-    for side, train in (("target", agent.train_target), ("source", agent.train_source)):
+    relabelled = agent.target.prepare(target_batch(b=2, t=3))
+    updates = (
+        ("target", "target/", agent.train_target),
+        ("source", "", lambda batch: agent.train_source(batch, relabelled)),  # logged as source/ by its trainer
+    )
+    for side, prefix, train in updates:
         learner = getattr(agent, side)
         for update in range(3):
             before = _snapshot(learner.actor_critic)
             metrics = train(target_batch(b=2, t=3))
             warming = update < 2
             assert _unchanged(before, learner.actor_critic) == warming, (side, update)
-            assert (f"{side}/critic/loss" in metrics) != warming, (side, update)
-            assert (f"{side}/coworld/maxmin_active" in metrics) == (side == "target" and not warming)
-            assert f"{side}/wm/loss" in metrics
+            assert (f"{prefix}critic/loss" in metrics) != warming, (side, update)
+            assert (f"{prefix}coworld/maxmin_active" in metrics) == (side == "target" and not warming)
+            assert f"{prefix}wm/loss" in metrics
         assert learner.updates == 3
 
 
@@ -336,13 +329,13 @@ def _record_schedule(monkeypatch: pytest.MonkeyPatch, crash_at_first_relabelled_
         )
         return out
 
-    def source(self: CoWorld, batch: Any) -> Any:
-        if crash_at_first_relabelled_update and self.target_batches is not None:
+    def source(self: CoWorld, batch: Any, target_batch: Any = None) -> Any:
+        if crash_at_first_relabelled_update and target_batch is not None:
             raise RuntimeError("simulated crash")
         before = (_fingerprint(self.source), _fingerprint(self.target))
-        out = train_source(self, batch)
+        out = train_source(self, batch, target_batch)
         events.append(
-            ("source", self.target_batches is not None, before, (_fingerprint(self.source), _fingerprint(self.target)))
+            ("source", target_batch is not None, before, (_fingerprint(self.source), _fingerprint(self.target)))
         )
         return out
 
@@ -429,7 +422,7 @@ def test_a_source_phase_resumed_after_a_crash_relabels_the_batches_an_uninterrup
         assert torch.equal(reward, want)
 
 
-# -- acting, checkpoints, the source learner ---------------------------------------------------------------------
+# -- acting, checkpoints, the source update -----------------------------------------------------------------------
 
 
 def _observations(n: int = 2) -> np.ndarray:
@@ -467,24 +460,16 @@ def test_coworld_acts_with_the_target_agent_in_eval_mode_by_default() -> None:
     np.testing.assert_array_equal(agent.value(later[1]), agent.target.value(later[1]))
 
 
-def test_the_source_learner_acts_evaluates_and_trains_as_the_source_agent(target_batch) -> None:
-    """What the online trainer drives in the source phases: the source agent's policy (keywords included) and
-    value, and CoWorld's source update with its metrics' ``source/`` prefix taken off (the trainer adds its own)."""
+def test_the_source_update_is_named_as_dreamerv2s_and_trains_the_source_agent_alone(target_batch) -> None:
+    """CoWorld's source update names its metrics as DreamerV2's update does (the source agent's online trainer,
+    which acts with the source agent itself, logs them under ``source/``) and moves the source agent only."""
     agent = _agent("coworld.reward_relabel=false")
-    learner = SourceLearner(agent)
-    obs, is_first = _observations(), np.array([False, True])
-    first = _act(learner.policy, obs, None, mode="eval")
-    assert _same_actions(first, _act(agent.source.policy, obs, None, mode="eval"))
-    assert not _same_actions(first, _act(agent.source.policy, obs, None, mode="train"))
-    later = _act(learner.policy, obs, first[1], mode="eval", is_first=is_first)
-    assert _same_actions(later, _act(agent.source.policy, obs, first[1], mode="eval", is_first=is_first))
-    assert not _same_actions(later, _act(agent.source.policy, obs, first[1], mode="eval"))
-    np.testing.assert_array_equal(learner.value(later[1]), agent.source.value(later[1]))
-    assert not np.array_equal(learner.value(later[1]), agent.target.value(later[1]))
-    metrics = learner.train(target_batch(b=2, t=3))
+    target_before = _snapshot(agent.target.world_model, agent.target.actor_critic)
+    metrics = agent.train_source(target_batch(b=2, t=3))
     assert "wm/loss" in metrics and "critic/loss" in metrics
-    assert not [key for key in metrics if key.startswith("source/")]
+    assert not [key for key in metrics if key.startswith(("source/", "target/"))]
     assert agent.source.updates == 1 and agent.target.updates == 0
+    assert _unchanged(target_before, agent.target.world_model, agent.target.actor_critic)
 
 
 def test_a_coworld_state_dict_round_trips_both_agents() -> None:

@@ -29,6 +29,7 @@ from coworld.report.results import (
     wall_clock_curve,
 )
 from coworld.report.tables import iqm_interval, label_order, results_table, seed_table, value_table
+from coworld.training.description import collector_run_info
 
 
 @pytest.fixture
@@ -358,7 +359,8 @@ def test_run_folders_are_found_by_their_run_json(tmp_path):
     make_run(tmp_path / "a", "r1", algo="curl", target="toy_reach", seed=0, returns=[1.0])
     collector = tmp_path / "datasets" / "toy_reach-medium_replay.run"  # the online dreamerv2 run of a collection
     collector.mkdir(parents=True)
-    (collector / "run.json").write_text(json.dumps({"task": "toy_reach", "quality": "medium-replay"}))
+    described = {**collector_run_info("toy_reach", "tiny"), "quality": "medium-replay"}
+    (collector / "run.json").write_text(json.dumps(described))
     (tmp_path / "notes").mkdir()
     (tmp_path / "notes" / "run.json").write_text(json.dumps({"something": "else"}))  # not a run description
     assert find_run_dirs(tmp_path) == [tmp_path / "a" / "r1", collector]

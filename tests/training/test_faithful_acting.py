@@ -164,9 +164,12 @@ def test_the_collectors_own_agent_evaluates_as_the_dreamerv2_run_it_is(tmp_path:
     assert result.exit_code == 0, result.output
     report = json.loads((tmp_path / "eval.json").read_text())
     assert report["extra"]["algo"] == "dreamerv2" and report["task"] == "toy_reach" and len(report["returns"]) == 2
-    # A collector's folder from before (its run.json named only its task) reads the same way.
+    _, read = load_run(run_dir)
+    assert read["algo"] == "dreamerv2" and read["target"] == "toy_reach" and read["online"]
+    # A collector's folder from before this release (its run.json named only its task) is refused in one line.
     info = json.loads((run_dir / "run.json").read_text())
     old = {key: info[key] for key in ("task", "quality", "dataset", "max_steps", "stop_return")}
     (run_dir / "run.json").write_text(json.dumps(old))
-    _, read = load_run(run_dir)
-    assert read["algo"] == "dreamerv2" and read["target"] == "toy_reach" and read["online"]
+    result = runner.invoke(main, ["eval", "--ckpt", str(run_dir), "--episodes", "2"])
+    assert result.exit_code == 2
+    assert "was written by an earlier coworld's collector (no 'algo' entry)" in result.output

@@ -192,7 +192,7 @@ def _dreamer_run(tmp_path: Path, in_thread: bool) -> tuple[OnlineTrainer, dict[s
         loop = OnlineTrainer(
             agent=agent, task="toy_reach", config=config, logdir=tmp_path, writer=writer, logger=logger
         )
-        loop._updates = Updates(agent.train, in_thread=in_thread)
+        loop._updates = Updates(in_thread=in_thread)
         try:
             loop.run(max_steps=300, progress=False)
         finally:
@@ -276,3 +276,26 @@ def test_beside_acting_the_update_a_checkpoint_waits_for_is_logged(tmp_path: Pat
     logged = [record["probe/updates"] for record in records if "probe/updates" in record]
     assert loop.updates == 1 + 150 // 5
     assert logged == [loop.updates]  # the last update's metrics, not the one's before it
+
+
+def test_a_checkpoint_from_before_this_release_is_refused_in_one_line(tmp_path: Path) -> None:
+    """An online run's checkpoint without acting's generator (written before acting had one) is not resumed with a
+    fresh one: one line says to train again or to resume it with the coworld that wrote it."""
+    import torch
+
+    from coworld.errors import CheckpointError
+
+    overrides = ["train.prefill=50", "train.pretrain_updates=0", "train.train_every=5"]
+    with open_writer(tmp_path / "d.h5") as writer, Logger(tmp_path, outputs=()) as logger:
+        loop = trainer(tmp_path, ProbeAgent(2), overrides, writer, logger)
+        try:
+            loop.run(max_steps=60, progress=False)
+        finally:
+            loop.close()
+    path = tmp_path / "checkpoint.pt"
+    state = torch.load(path, weights_only=True)
+    del state["act_rng"]
+    torch.save(state, path)
+    with open_writer(tmp_path / "d.h5", resume=True) as writer, Logger(tmp_path, outputs=()) as logger:
+        with pytest.raises(CheckpointError, match=r"was written by an earlier coworld \(no 'act_rng' entry\)"):
+            trainer(tmp_path, ProbeAgent(2), overrides, writer, logger).restore()

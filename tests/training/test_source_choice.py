@@ -96,11 +96,11 @@ def test_a_run_chooses_the_closest_candidate_records_it_and_trains_with_it(
     original = CoWorld.train_source
     calls = {"n": 0}
 
-    def crashing(self, batch):
+    def crashing(self, *args):
         calls["n"] += 1
         if calls["n"] > 13 + 5:  # the first candidate's 13 pretraining updates, then 5 of the second's
             raise RuntimeError("simulated crash")
-        return original(self, batch)
+        return original(self, *args)
 
     monkeypatch.setattr(CoWorld, "train_source", crashing)
     with pytest.raises(RuntimeError, match="simulated crash"):

@@ -39,14 +39,12 @@ def episodes():
 
 def test_world_models_of_each_kind_of_agent():
     from coworld.agents.coworld import CoWorld
-    from coworld.agents.coworld_feeds import SourceLearner
     from coworld.config import make_config
 
     dreamer = tiny_agent()
     assert world_models_of(dreamer) == {"model": dreamer.world_model}
     coworld = CoWorld(config=make_config("tiny"), action_size=2, device="cpu")
     assert world_models_of(coworld) == {"target": coworld.target.world_model, "source": coworld.source.world_model}
-    assert world_models_of(SourceLearner(coworld)) == {"source": coworld.source.world_model}
     assert world_models_of(object()) == {}
 
 
