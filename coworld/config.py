@@ -369,8 +369,8 @@ class CoWorldConfig:
     """Iterations between evaluations of the target agent in the target environment."""
     select_batches: Annotated[int, Range(1, 10_000)] = 8
     """Several sources (``--source A,B``): target-dataset batches (``train.batch_size`` x ``train.seq_len``) on
-    which each candidate's distance to the target is measured (:mod:`coworld.training.choice`; the later paper gives
-    no number)."""
+    which each candidate's distance to the target is measured (:mod:`coworld.training.multi_source`; the later paper
+    gives no number)."""
 
 
 @dataclass(frozen=True)

@@ -17,7 +17,7 @@ from coworld.commands.options import (
     output_file,
     threads_option,
 )
-from coworld.training.source_choice import trained_source
+from coworld.training.chosen_source import trained_source
 
 DEVICES = click.Choice(["auto", "cpu", "cuda"])
 MAX_SHOWN = 64

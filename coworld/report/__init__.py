@@ -146,7 +146,7 @@ def _markdown(
             by_seed,
             "",
         ]
-    from coworld.report.choice import choice_lines
+    from coworld.report.sources import choice_lines
 
     choices = choice_lines(results, skipped, out)
     if choices:
@@ -154,7 +154,7 @@ def _markdown(
             "## Source choice",
             "",
             "Runs that chose among several sources: each candidate's distance to the target (Eq. 3's KL between its"
-            " latents and the target's on target frames; `coworld.training.choice`), the chosen one in bold.",
+            " latents and the target's on target frames; `coworld.training.multi_source`), the chosen one in bold.",
             "",
             *choices,
             "",

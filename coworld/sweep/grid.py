@@ -665,7 +665,7 @@ def check_pair(source: str, target: str, algos: Sequence[str]) -> None:
 
 def parse_pairs(text: str) -> tuple[tuple[str, str], ...]:
     """``"a:b,c:d"`` -> ``(("a", "b"), ("c", "d"))``; ``"a+b:c"``: CoWorld choosing between sources a and b for
-    target c (:mod:`coworld.training.choice`). Task names are checked; an empty pair (``"a:b,"``) is refused, as
+    target c (:mod:`coworld.training.multi_source`). Task names are checked; an empty pair (``"a:b,"``) is refused, as
     ``train --source`` refuses an empty name."""
     if not text.strip():
         raise CoworldError("--pairs is empty; write SOURCE:TARGET[,SOURCE:TARGET...]")

@@ -55,11 +55,11 @@ from coworld.training.checkpoint import (
     save_checkpoint,
     set_rng_state,
 )
-from coworld.training.choice import restore_warm_target, settle_source
 from coworld.training.divergence import Phase
 from coworld.training.evaluate import evaluate
 from coworld.training.job import TrainJob
 from coworld.training.logger import Logger, Rate
+from coworld.training.multi_source import restore_warm_target, settle_source
 from coworld.training.online import make_source_trainer, source_phase, source_replay_writer
 from coworld.training.openloop import log_open_loop
 
@@ -82,7 +82,8 @@ class Progress:
 
 def train_coworld(job: TrainJob, *, device: torch.device, resumed: bool, progress: bool = True) -> dict[str, Any]:
     """Run Algorithm 1 for a checked job, resuming what its run folder holds (so ``resumed`` changes nothing); with
-    several sources (``--source A,B``) the closest is chosen first (:func:`coworld.training.choice.settle_source`)."""
+    several sources (``--source A,B``) the closest is chosen first
+    (:func:`coworld.training.multi_source.settle_source`)."""
     dataset = open_dataset(job.dataset)
     try:
         job, warm_target = settle_source(job, dataset=dataset, device=device, progress=progress)

@@ -61,7 +61,7 @@ RUN_ARTEFACTS = (
     "source",
     "source_replay.h5",
     "eval.json",
-    "source_choice.json",  # CoWorld choosing among several sources (coworld.training.choice)
+    "source_choice.json",  # CoWorld choosing among several sources (coworld.training.multi_source)
     "sources",
     "selection",
 )
@@ -130,7 +130,7 @@ def check_source_replay(logdir: Path, info: Mapping[str, Any], start_over: str) 
     with the run) is of the run's source task: the one it names, or the one it chose among several (none before
     the choice). One line otherwise, ending with ``start_over``; a file that cannot be read is left to the writer
     that resumes it."""
-    from coworld.training.source_choice import CHOICE_FILE, trained_source
+    from coworld.training.chosen_source import CHOICE_FILE, trained_source
 
     path = logdir / "source_replay.h5"
     if not isinstance(info.get("source"), str) or not path.is_file():

@@ -173,7 +173,7 @@ def check_resumable(run_dir: Path, config: Config, info: dict[str, Any]) -> None
         return
     sources = parse_sources(info["source"]) if info.get("source") else ()
     if len(sources) > 1:  # CoWorld choosing its source: each candidate's pretraining, the chosen one's once moved
-        from coworld.training.source_choice import candidate_dir, read_choice
+        from coworld.training.chosen_source import candidate_dir, read_choice
 
         choice = read_choice(run_dir, sources)
         checks = [(candidate_dir(run_dir, name) / "source" / "checkpoint.pt", name) for name in sources]

@@ -26,8 +26,8 @@ import torch
 from coworld import envs
 from coworld.data.windows import EpisodeSource, EpisodeStore, count_episodes, episode_windows, get_episodes
 from coworld.errors import CoworldError
+from coworld.training.chosen_source import trained_source
 from coworld.training.openloop import batch_tensors
-from coworld.training.source_choice import trained_source
 from coworld.viz.media import require_extra
 
 __all__ = [

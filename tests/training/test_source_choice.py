@@ -23,10 +23,10 @@ from coworld.config import make_config
 from coworld.data import open_dataset
 from coworld.errors import CoworldError
 from coworld.losses.coworld import closest_source, domain_distance
-from coworld.training import choice as choice_module
-from coworld.training.choice import measure_distance
+from coworld.training import multi_source as choice_module
+from coworld.training.chosen_source import CHOICE_FILE, candidate_dir, read_choice, trained_source
+from coworld.training.multi_source import measure_distance
 from coworld.training.run import clear_run_dir, prepare_run_dir
-from coworld.training.source_choice import CHOICE_FILE, candidate_dir, read_choice, trained_source
 from coworld.training.train import check_job, run_job
 from coworld.viz.latents import NAME_THE_SOURCE
 

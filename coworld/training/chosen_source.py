@@ -1,5 +1,6 @@
-"""The record of CoWorld's automatic source choice in a run folder (made by :mod:`coworld.training.choice`), read by
-``train`` (resuming), ``report`` and ``eval`` alike: which candidates, each one's distance to the target, the chosen."""
+"""The record of CoWorld's automatic source choice in a run folder (made by :mod:`coworld.training.multi_source`),
+read by ``train`` (resuming), ``report`` and ``eval`` alike: which candidates, each one's distance to the target, the
+chosen."""
 
 from __future__ import annotations
 
@@ -18,7 +19,7 @@ CHOICE_FILE = "source_choice.json"
 
 @dataclass(frozen=True)
 class SourceChoice:
-    """What :func:`coworld.training.choice.choose_source` decided: the candidates in the order given, each one's
+    """What :func:`coworld.training.multi_source.choose_source` decided: the candidates in the order given, each one's
     distance, the chosen."""
 
     candidates: tuple[str, ...]

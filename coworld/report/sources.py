@@ -1,5 +1,6 @@
 """The report's "Source choice" section: for each run that chose among several sources (``--source A,B,...``), the
-candidates' distances to the target and the one it chose (``source_choice.json``, :mod:`coworld.training.choice`)."""
+candidates' distances to the target and the one it chose (``source_choice.json``,
+:mod:`coworld.training.multi_source`)."""
 
 from __future__ import annotations
 
@@ -7,7 +8,7 @@ from pathlib import Path
 
 from coworld.errors import CoworldError
 from coworld.report.results import RunResult, shown_path
-from coworld.training.source_choice import read_choice
+from coworld.training.chosen_source import read_choice
 
 
 def choice_lines(results: list[RunResult], problems: list[str], folder: Path) -> list[str]:

@@ -51,12 +51,7 @@ from coworld.errors import CheckpointError
 from coworld.losses.coworld import closest_source, domain_distance
 from coworld.storage import write_text_atomically
 from coworld.training.checkpoint import load_checkpoint, rng_state, save_checkpoint, set_rng_state
-from coworld.training.divergence import Phase
-from coworld.training.job import parse_sources
-from coworld.training.logger import Logger
-from coworld.training.online import pretrain_source, source_phase
-from coworld.training.run import seed_everything
-from coworld.training.source_choice import (
+from coworld.training.chosen_source import (
     CHOICE_FILE,
     MEASURED_FILE,
     SourceChoice,
@@ -64,6 +59,11 @@ from coworld.training.source_choice import (
     read_choice,
     read_distances,
 )
+from coworld.training.divergence import Phase
+from coworld.training.job import parse_sources
+from coworld.training.logger import Logger
+from coworld.training.online import pretrain_source, source_phase
+from coworld.training.run import seed_everything
 
 WARMUP_KIND = "coworld-warmup"
 SELECT_SEED = 7_000
