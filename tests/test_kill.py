@@ -16,7 +16,6 @@ from types import ModuleType
 
 import numpy as np
 import pytest
-import torch
 
 from coworld.data import open_dataset, verify_dataset
 from coworld.training.checkpoint import load_checkpoint
@@ -163,19 +162,9 @@ def test_train_killed_at_random_moments(
     done = processes.run_cli(*args[:-2], "--logdir", str(whole))  # the same command, in a folder of its own
     assert done.returncode == 0, done.stderr[-3000:]
     never_killed = load_checkpoint(whole / "checkpoint.pt")
-    changed = [key for key in ("agent", "source") if key in state and _differs(state[key], never_killed[key])]
+    differ = helpers.states_differ
+    changed = [key for key in ("agent", "source") if key in state and differ(state[key], never_killed[key])]
     assert not changed, changed
-
-
-def _differs(a: object, b: object) -> bool:
-    """Whether two nested state dicts differ in structure or in any value, tensors element for element."""
-    if isinstance(a, dict) and isinstance(b, dict):
-        return a.keys() != b.keys() or any(_differs(a[key], b[key]) for key in a)
-    if isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)):
-        return len(a) != len(b) or any(_differs(x, y) for x, y in zip(a, b, strict=True))
-    if isinstance(a, torch.Tensor) and isinstance(b, torch.Tensor):
-        return a.shape != b.shape or not torch.equal(a, b)
-    return a != b
 
 
 def _replaced(path: Path, mtime: int | None):
@@ -222,7 +211,7 @@ def test_the_dreamerv2_collector_killed_past_its_checkpoint_resumes_to_the_unint
     for state in states:
         state.pop("config")
         state.pop("metrics_mark")
-    assert not _differs(*states)  # the agent, its counters and random states
+    assert not helpers.states_differ(*states)  # the agent, its counters and random states
     assert _logged_steps(run) == _logged_steps(whole.with_name("d.run"))  # each record once
 
 

@@ -205,3 +205,16 @@ def patch_envs(setattr_: Callable[[Any, str, Any], None], *, same_step: bool = F
 
     setattr_(envs, "task_spec", task_spec)
     setattr_(envs, "make_vector", make_vector)
+
+
+def states_differ(a: object, b: object) -> bool:
+    """Whether two nested checkpoint states differ in structure or in any value, tensors element for element."""
+    import torch
+
+    if isinstance(a, dict) and isinstance(b, dict):
+        return a.keys() != b.keys() or any(states_differ(a[key], b[key]) for key in a)
+    if isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)):
+        return len(a) != len(b) or any(states_differ(x, y) for x, y in zip(a, b, strict=True))
+    if isinstance(a, torch.Tensor) and isinstance(b, torch.Tensor):
+        return a.shape != b.shape or not torch.equal(a, b)
+    return a != b

@@ -102,17 +102,6 @@ def job(dataset: Path, logdir: Path, algo: str, *extra: str) -> Any:
     )
 
 
-def differs(a: object, b: object) -> bool:
-    """Whether two nested states differ in structure or in any value, tensors element for element."""
-    if isinstance(a, dict) and isinstance(b, dict):
-        return a.keys() != b.keys() or any(differs(a[key], b[key]) for key in a)
-    if isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)):
-        return len(a) != len(b) or any(differs(x, y) for x, y in zip(a, b, strict=True))
-    if isinstance(a, torch.Tensor) and isinstance(b, torch.Tensor):
-        return a.shape != b.shape or not torch.equal(a, b)
-    return a != b
-
-
 def stopped_then_resumed(monkeypatch: pytest.MonkeyPatch, run: Any, cls: type, method: str, call: int) -> None:
     with monkeypatch.context() as patch:
         kill_at(patch, cls, method, call)
@@ -197,7 +186,7 @@ def test_a_resumed_collection_is_the_uninterrupted_one(
     states = [torch.load(path.with_name(run) / "checkpoint.pt", weights_only=True) for path in (stopped, whole)]
     for state in states:
         del state["config"], state["metrics_mark"]
-    assert not differs(*states)  # the agent, its counters and random states
+    assert not helpers.states_differ(*states)  # the agent, its counters and random states
 
 
 def test_the_logger_cuts_its_file_back_only_to_a_mark_of_that_file(tmp_path: Path) -> None:
