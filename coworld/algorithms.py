@@ -12,7 +12,7 @@ This module imports nothing of the package: every layer may read it.
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Literal
 
 DREAMER_KNOBS: Mapping[str, tuple[str, ...]] = {
@@ -90,6 +90,21 @@ class Algorithm:
         return text
 
 
+_CURL = Algorithm(
+    "curl",
+    agent="curl:Curl",
+    checkpoint="curl",
+    column=0,
+    section="curl",
+    world_model=False,
+    sampler="curl:make_sampler",
+    schedule="curl",
+    discount="curl.discount",
+    options={"cql": False},
+    knobs=_CURL_KNOBS,
+)
+"""CURL; CURL+CQL is it with ``cql=True`` and the CQL weight among its critic's knobs."""
+
 REGISTRY: tuple[Algorithm, ...] = (
     Algorithm(
         "coworld",
@@ -107,29 +122,12 @@ REGISTRY: tuple[Algorithm, ...] = (
         },
     ),
     Algorithm("dreamerv2", agent="dreamerv2:DreamerV2", checkpoint="dreamerv2-offline", column=3),
-    Algorithm(
-        "curl",
-        agent="curl:Curl",
-        checkpoint="curl",
-        column=0,
-        section="curl",
-        world_model=False,
-        sampler="curl:make_sampler",
-        schedule="curl",
-        discount="curl.discount",
-        options={"cql": False},
-        knobs=_CURL_KNOBS,
-    ),
-    Algorithm(
-        "curl-cql",
-        agent="curl:Curl",
+    _CURL,
+    replace(
+        _CURL,
+        name="curl-cql",
         checkpoint="curl-cql",
         column=1,
-        section="curl",
-        world_model=False,
-        sampler="curl:make_sampler",
-        schedule="curl",
-        discount="curl.discount",
         options={"cql": True},
         knobs={**_CURL_KNOBS, "critic": ("curl.critic_lr", "curl.cql_weight")},
     ),
@@ -199,11 +197,6 @@ def algorithm(name: str) -> Algorithm:
         raise ValueError(f"unknown algorithm {name!r}") from None
 
 
-def known(name: Any) -> bool:
-    """Whether ``name`` is an algorithm's (a run description's ``algo`` may be anything)."""
-    return isinstance(name, str) and name in _BY_NAME
-
-
 def names(**traits: Any) -> tuple[str, ...]:
     """The algorithms whose records have every trait given (``names(world_model=False)``: the model-free ones),
     in :data:`REGISTRY` order; ``needs_source`` is a trait too."""
@@ -219,4 +212,4 @@ def by_column(found: Any) -> list[str]:
 
 def is_collaborative(name: Any) -> bool:
     """Whether ``name`` is a collaborative algorithm's (CoWorld's); False for any other name, known or not."""
-    return known(name) and _BY_NAME[name].collaborative
+    return isinstance(name, str) and name in _BY_NAME and _BY_NAME[name].collaborative

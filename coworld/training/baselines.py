@@ -11,6 +11,7 @@ pretrain_on_source`); with EWC it then takes its source weights and their Fisher
 
 from __future__ import annotations
 
+from functools import reduce
 from typing import Any
 
 import torch
@@ -52,8 +53,7 @@ def train_offline(job: TrainJob, *, device: torch.device, resumed: bool, progres
         def make_sampler(seed: int):
             return iter(sampler(dataset, config, seed))
 
-    section, key = record.discount.split(".")
-    discount = getattr(getattr(config, section), key)
+    discount = reduce(getattr, record.discount.split("."), config)
     with Logger(job.logdir) as logger:
         trainer = OfflineTrainer(
             agent=agent,

@@ -315,9 +315,8 @@ def load_trained_agent(path: Path, device: str = "auto") -> tuple[Any, dict[str,
     config = replace(config, device=device)
     torch_device = resolve_device(device)
     action_size = envs.task_spec(info["target"]).action_size
-    if (
-        algorithm(info["algo"]).collaborative and "source_task" in state
-    ):  # both agents: the value check reads the cap's critic too
+    # a CoWorld run: both agents, as the value check reads the cap's critic too
+    if algorithm(info["algo"]).collaborative and "source_task" in state:
         from coworld.agents.coworld import CoWorld
 
         source_size = envs.task_spec(state["source_task"]).action_size

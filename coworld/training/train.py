@@ -192,16 +192,17 @@ def check_schedule(algo: str, config: Config) -> None:
     """The rules between config keys that only one algorithm reads (one line on what to change)."""
     from coworld.agents.factory import agent_class
 
+    record = algorithm(algo)
     section = getattr(agent_class(algo), "section", None)  # the agents that learn an ensemble of models first
     if section is not None:
         model_updates = getattr(config, section).model_updates
-        total = getattr(config, algorithm(algo).schedule).updates
+        total = getattr(config, record.schedule).updates
         if model_updates >= total:
             raise CoworldError(
                 f"{section}.model_updates={model_updates} leaves none of the run's {total} updates"
-                f" ({algorithm(algo).schedule}.updates) to the actor-critic; lower it or lengthen the run"
+                f" ({record.schedule}.updates) to the actor-critic; lower it or lengthen the run"
             )
-    shortest = algorithm(algo).min_seq_len
+    shortest = record.min_seq_len
     if config.train.seq_len < shortest:
         raise CoworldError(
             f"{algo} learns from consecutive steps of the dataset's sequences, so train.seq_len must be at least"
